@@ -1,0 +1,108 @@
+"""Fixed-pattern block-sparse system matrix.
+
+The implicit integrators solve ``A dv = b`` with ``A = M - c_v dF/dv - c_x dF/dx``
+(a 3N x 3N matrix made of 3x3 blocks). Its block pattern depends only on the
+cloth's topology, so it is built once: the diagonal blocks plus one block for
+each ordered pair of vertices coupled by a force term. Every step only refills
+the values:
+
+1. each effect writes its 3x3 blocks into :attr:`SystemMatrix.blocks`
+   (shape ``(n_blocks, 3, 3)``) through index maps it computed once at bind time
+   (:meth:`block_index`), typically with one sparse scatter product, and
+2. :meth:`SystemMatrix.finalize` gathers the blocks into the value array of a
+   CSR matrix whose ``indptr``/``indices`` never change (no COO->CSR
+   conversion, no Python loop over springs).
+
+CSR rather than BSR: scipy's CSR mat-vec was measured 5-10 % faster here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+class SystemMatrix:
+    """A 3N x 3N sparse matrix with a fixed 3x3 block pattern.
+
+    Parameters
+    ----------
+    n : int
+        Number of vertices.
+    pairs : (P, 2) int array
+        Vertex pairs coupled by some force term. Both ``(i, j)`` and ``(j, i)``
+        blocks are created; duplicates and self-pairs are merged.
+    """
+
+    def __init__(self, n: int, pairs: np.ndarray) -> None:
+        self.n = int(n)
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+        diag = np.arange(n, dtype=np.int64)
+        rows = np.concatenate([diag, pairs[:, 0], pairs[:, 1]])
+        cols = np.concatenate([diag, pairs[:, 1], pairs[:, 0]])
+        keys = np.unique(rows * n + cols)            # sorted by (row, col)
+        self._keys = keys
+        brow, bcol = keys // n, keys % n
+        self.n_blocks = len(keys)
+        self.block_rows, self.block_cols = brow, bcol
+        counts = np.bincount(brow, minlength=n)
+        bptr = np.concatenate([[0], np.cumsum(counts)])
+        self.diag_index = self.block_index(diag, diag)
+        #: (n_blocks, 3, 3) block values, refilled every step
+        self.blocks = np.zeros((self.n_blocks, 3, 3))
+
+        # CSR structure: scalar row 3*i + a holds, for each block (i, c) in block
+        # row i (in column order, position m), the entries 3*c + 0..2.
+        k_row = counts[brow]                          # blocks in this block's row
+        m_in_row = np.arange(self.n_blocks) - bptr[brow]
+        a = np.arange(3)[None, :, None]
+        b = np.arange(3)[None, None, :]
+        dest = (9 * bptr[brow])[:, None, None] + a * (3 * k_row)[:, None, None] \
+            + 3 * m_in_row[:, None, None] + b           # (n_blocks, 3, 3)
+        self._perm = np.empty(9 * self.n_blocks, dtype=np.int64)
+        self._perm[dest.ravel()] = np.arange(9 * self.n_blocks)   # csr.data = blocks.ravel()[perm]
+        indptr = np.concatenate([[0], np.cumsum(np.repeat(3 * counts, 3))]).astype(np.int64)
+        cols_scalar = np.empty(9 * self.n_blocks, dtype=np.int64)
+        cols_scalar[dest.ravel()] = (3 * bcol[:, None, None] + b + 0 * a).ravel()
+        self.csr = sp.csr_array(
+            (np.zeros(9 * self.n_blocks), cols_scalar, indptr), shape=(3 * n, 3 * n))
+        self.csr.has_sorted_indices = True
+
+    def block_index(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Positions in :attr:`blocks` of the blocks ``(i, j)`` (which must be in the pattern)."""
+        q = np.asarray(i, dtype=np.int64) * self.n + np.asarray(j, dtype=np.int64)
+        idx = np.searchsorted(self._keys, q)
+        if np.any(idx >= len(self._keys)) or np.any(self._keys[np.minimum(idx, len(self._keys) - 1)] != q):
+            raise ValueError("block not in the sparsity pattern")
+        return idx
+
+    def pair_scatter(self, pairs: np.ndarray) -> sp.csr_array:
+        """Scatter operator for symmetric pair blocks.
+
+        Returns ``G`` of shape ``(n_blocks, P)`` such that ``G @ C.reshape(P, 9)``
+        adds ``+C_p`` to blocks ``(i, i)`` and ``(j, j)`` and ``-C_p`` to blocks
+        ``(i, j)`` and ``(j, i)`` of every pair ``p = (i, j)``, the structure of a
+        two-point interaction whose force depends on ``x_j - x_i`` (for a
+        symmetric ``C_p``).
+        """
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        i, j = pairs[:, 0], pairs[:, 1]
+        p = np.arange(len(pairs))
+        rows = np.concatenate([self.block_index(i, i), self.block_index(j, j),
+                               self.block_index(i, j), self.block_index(j, i)])
+        vals = np.concatenate([np.ones(2 * len(p)), -np.ones(2 * len(p))])
+        return sp.csr_array((vals, (rows, np.tile(p, 4))), shape=(self.n_blocks, len(pairs)))
+
+    def reset(self) -> None:
+        """Zero all block values."""
+        self.blocks.fill(0.0)
+
+    def finalize(self) -> sp.csr_array:
+        """Copy the block values into the CSR matrix and return it (same object every step)."""
+        np.take(self.blocks.reshape(-1), self._perm, out=self.csr.data)
+        return self.csr
+
+    def diagonal_blocks(self) -> np.ndarray:
+        """The (N, 3, 3) diagonal blocks (a view-free copy)."""
+        return self.blocks[self.diag_index]

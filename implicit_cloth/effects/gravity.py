@@ -1,0 +1,36 @@
+"""Uniform gravity: ``f_i = m_i g`` (N), potential ``U = -sum_i m_i g . x_i`` (J)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+
+class Gravity:
+    """Uniform gravitational acceleration ``g`` (m/s^2) acting on every vertex mass."""
+
+    name = "gravity"
+
+    def __init__(self, masses: np.ndarray, g) -> None:
+        self.g = np.asarray(g, dtype=float)
+        self._mg = masses[:, None] * self.g[None, :]
+
+    def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
+        out += self._mg
+
+    def potential(self, x: np.ndarray) -> float:
+        return -float(np.einsum("ij,ij->", self._mg, x))
+
+    def pairs(self) -> np.ndarray:
+        return np.zeros((0, 2), dtype=np.int64)
+
+    def bind(self, system: Any) -> None:
+        pass
+
+    def linearize(self, x, v, t, c_x, c_v, w, system, kw) -> None:
+        pass  # constant force: no Jacobian
+
+
+def build(model: Any, g) -> Gravity:
+    return Gravity(model.masses, g)

@@ -1,0 +1,176 @@
+"""Hookean springs with damping along the spring (structural, shear and bend kinds).
+
+Notation (Baraff & Witkin 1998, §4 and §5.1): spring s joins vertices i and j,
+``d = x_j - x_i``, ``l = |d|``, ``u = d / l``, rest length ``L0``, spring
+constant ``k`` (N/m), damping ``kd`` (N*s/m).
+
+Force on i (the force on j is its negative)::
+
+    f_i = k (l - L0) u + kd ((v_j - v_i) . u) u
+
+Jacobian blocks (``df_i/dx_j = K``, ``df_i/dx_i = -K``, likewise for v)::
+
+    K = k [u u^T + c (I - u u^T)],   c = 1 - L0/l       (exact)
+    D = kd u u^T
+
+Choices that keep the implicit system symmetric positive definite:
+
+* The transverse term ``c (I - u u^T)`` is kept for stretched springs and
+  clamped at ``c >= 0`` for compressed ones (for ``l < L0`` it is negative and
+  makes ``-dF/dx`` indefinite, the buckling instability of BW98 §5.1 / Choi &
+  Ko 2002). Use ``exact=True`` in :meth:`Springs.jacobian` for the unclamped
+  derivative.
+* The derivative of the damping force with respect to x is dropped (BW98 §4.5:
+  it is not symmetric and small).
+* Zero-length springs (coincident vertices, ``l < 1e-9 * mean rest length``)
+  have no direction: ``u = 0``, so their force is ``k d`` (exact when
+  ``L0 = 0``) and their Jacobian is ``k I`` if ``L0 = 0`` and 0 otherwise. No
+  division by zero, no NaN.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+
+class Springs:
+    """All springs of the declared kinds, evaluated as one vectorised set.
+
+    Parameters
+    ----------
+    n : int
+        Number of vertices.
+    pairs : (S, 2) int array
+        Vertex indices (i, j) of each spring.
+    stiffness, damping, rest_length : (S,) arrays
+        k in N/m, kd in N*s/m, L0 in m.
+    kinds : dict of str -> slice
+        Which rows belong to which kind (for per-kind reports).
+    """
+
+    name = "springs"
+
+    def __init__(self, n: int, pairs: np.ndarray, stiffness: np.ndarray, damping: np.ndarray,
+                 rest_length: np.ndarray, kinds: dict[str, slice]) -> None:
+        self.n = int(n)
+        self.i = np.ascontiguousarray(pairs[:, 0], dtype=np.int64)
+        self.j = np.ascontiguousarray(pairs[:, 1], dtype=np.int64)
+        self.k = np.asarray(stiffness, dtype=float)
+        self.kd = np.asarray(damping, dtype=float)
+        self.L0 = np.asarray(rest_length, dtype=float)
+        self.kinds = dict(kinds)
+        s = len(self.i)
+        positive = self.L0[self.L0 > 0]
+        self._tiny = 1e-9 * (positive.mean() if positive.size else 1.0)
+        # incidence: F = B @ f_s puts +f_s on i and -f_s on j
+        rows = np.concatenate([self.i, self.j])
+        cols = np.concatenate([np.arange(s), np.arange(s)])
+        vals = np.concatenate([np.ones(s), -np.ones(s)])
+        self._B = sp.csr_array((vals, (rows, cols)), shape=(self.n, s))
+        self._G: sp.csr_array | None = None
+
+    # ------------------------------------------------------------------ geometry
+    def _frame(self, x: np.ndarray):
+        d = x[self.j] - x[self.i]
+        l = np.sqrt(np.einsum("ij,ij->i", d, d))
+        ok = l > self._tiny
+        inv = np.divide(1.0, l, out=np.zeros_like(l), where=ok)
+        u = d * inv[:, None]
+        return d, l, u, ok, inv
+
+    def lengths(self, x: np.ndarray) -> np.ndarray:
+        """Current length of each spring, m."""
+        d = x[self.j] - x[self.i]
+        return np.sqrt(np.einsum("ij,ij->i", d, d))
+
+    def strain(self, x: np.ndarray) -> np.ndarray:
+        """Engineering strain ``(l - L0) / L0`` of each spring (0 where ``L0 = 0``)."""
+        l = self.lengths(x)
+        return np.divide(l - self.L0, self.L0, out=np.zeros_like(l), where=self.L0 > 0)
+
+    # ------------------------------------------------------------------ effect API
+    def spring_forces(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Force of each spring on its first vertex i, (S, 3) N."""
+        d, l, u, ok, inv = self._frame(x)
+        # k (l - L0) u, written k (d - L0 u) so that it stays k d when u = 0
+        f = self.k[:, None] * (d - self.L0[:, None] * u)
+        if np.any(self.kd):
+            dv = v[self.j] - v[self.i]
+            f += (self.kd * np.einsum("ij,ij->i", dv, u))[:, None] * u
+        return f
+
+    def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
+        out += self._B @ self.spring_forces(x, v)
+
+    def potential(self, x: np.ndarray) -> float:
+        """Elastic energy ``sum_s k (l - L0)^2 / 2``, J."""
+        return 0.5 * float(np.dot(self.k, (self.lengths(x) - self.L0) ** 2))
+
+    def pairs(self) -> np.ndarray:
+        return np.stack([self.i, self.j], axis=1)
+
+    def bind(self, system: Any) -> None:
+        self._G = system.pair_scatter(self.pairs())
+
+    def _coefficients(self, x: np.ndarray, exact: bool = False):
+        """K = k [a I + (1 - a) u u^T] per spring: returns (u, a) with a = max(0, 1 - L0/l)."""
+        d, l, u, ok, inv = self._frame(x)
+        a = np.where(ok, 1.0 - self.L0 * inv, np.where(self.L0 > 0, 0.0, 1.0))
+        if not exact:
+            np.maximum(a, 0.0, out=a)
+        return u, a
+
+    def linearize(self, x, v, t, c_x, c_v, w, system, kw) -> None:
+        """Add ``-(c_v dF/dv + c_x dF/dx)`` to the system blocks and ``(dF/dx) w`` to ``kw``.
+
+        Per spring the block is ``C = c_x K + c_v D = alpha I + beta u u^T`` with
+        ``alpha = c_x k a`` and ``beta = c_x k (1 - a) + c_v kd``; it enters the
+        (i,i) and (j,j) blocks with + and the (i,j), (j,i) blocks with -.
+        """
+        u, a = self._coefficients(x)
+        alpha = c_x * self.k * a
+        beta = c_x * self.k * (1.0 - a) + c_v * self.kd
+        C = beta[:, None, None] * (u[:, :, None] * u[:, None, :])
+        C[:, 0, 0] += alpha
+        C[:, 1, 1] += alpha
+        C[:, 2, 2] += alpha
+        system.blocks += (self._G @ C.reshape(-1, 9)).reshape(-1, 3, 3)
+        if kw is not None and w is not None:
+            dw = w[self.j] - w[self.i]
+            kdw = (self.k * a)[:, None] * dw + (self.k * (1.0 - a) * np.einsum("ij,ij->i", u, dw))[:, None] * u
+            kw += self._B @ kdw
+
+    def jacobian(self, x: np.ndarray, exact: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Per-spring blocks ``K = df_i/dx_j`` and ``D = df_i/dv_j``, each (S, 3, 3).
+
+        With ``exact=False`` (what the solver uses) the transverse term of
+        compressed springs is clamped; ``exact=True`` gives the true derivative.
+        """
+        u, a = self._coefficients(x, exact=exact)
+        uu = u[:, :, None] * u[:, None, :]
+        eye = np.eye(3)[None]
+        K = self.k[:, None, None] * (a[:, None, None] * eye + (1.0 - a)[:, None, None] * uu)
+        D = self.kd[:, None, None] * uu
+        return K, D
+
+
+def build(model: Any, params: dict[str, dict[str, float]]) -> Springs:
+    """Springs of the declared kinds with rest lengths taken from the initial positions."""
+    pairs, k, kd, kinds = [], [], [], {}
+    start = 0
+    for kind in ("structural", "shear", "bend"):
+        if kind not in params:
+            continue
+        p = model.geometry.springs.get(kind, np.zeros((0, 2), dtype=np.int64))
+        pairs.append(p)
+        k.append(np.full(len(p), params[kind]["stiffness"]))
+        kd.append(np.full(len(p), params[kind]["damping"]))
+        kinds[kind] = slice(start, start + len(p))
+        start += len(p)
+    allp = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
+    x0 = model.rest_positions
+    L0 = np.linalg.norm(x0[allp[:, 1]] - x0[allp[:, 0]], axis=1)
+    return Springs(model.n, allp, np.concatenate(k), np.concatenate(kd), L0, kinds)

@@ -1,0 +1,32 @@
+"""Time integrators, all on the same force model. See :data:`INTEGRATOR_CLASSES`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..scene import INTEGRATORS
+from .backward_euler import BackwardEuler
+from .base import ImplicitIntegrator, Integrator, StepInfo
+from .bdf2 import BDF2
+from .forward_euler import ForwardEuler
+from .rk4 import RK4
+from .symplectic_euler import SymplecticEuler
+from .verlet import Verlet
+
+#: integrator name -> class
+INTEGRATOR_CLASSES: dict[str, type[Integrator]] = {
+    c.name: c for c in (ForwardEuler, SymplecticEuler, Verlet, RK4, BackwardEuler, BDF2)
+}
+assert tuple(INTEGRATOR_CLASSES) == INTEGRATORS
+
+
+def make_integrator(name: str, model: Any, solver: dict[str, Any] | None = None) -> Integrator:
+    """Instantiate an integrator by name."""
+    try:
+        cls = INTEGRATOR_CLASSES[name]
+    except KeyError:
+        raise ValueError(f"integrator: must be one of {', '.join(INTEGRATORS)}, got {name!r}") from None
+    return cls(model, solver)
+
+
+__all__ = ["INTEGRATOR_CLASSES", "Integrator", "ImplicitIntegrator", "StepInfo", "make_integrator"]

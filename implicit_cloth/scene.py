@@ -1,0 +1,355 @@
+"""Scene description: loading, validation and defaults.
+
+A scene is a nested mapping (from a TOML file or a dict) with the tables
+``simulation``, ``solver``, ``cloth`` (with ``cloth.springs``) and ``effects``.
+Validation checks every key and reports the dotted path of a bad key together
+with the bad value, e.g. ``cloth.springs.shear.stiffness: must be a finite
+number >= 0, got -5``; an unknown key is an error with a "did you mean"
+suggestion. The validated scene is stored in a normalised form with every
+default filled in (see :attr:`Scene.data`).
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from .errors import SceneError
+from .materials import MATERIALS
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - exercised on 3.10 only
+    import tomli as tomllib  # type: ignore[no-redef]
+
+#: Names of the integrators, in the order used by reports and benchmarks.
+INTEGRATORS: tuple[str, ...] = (
+    "forward_euler",
+    "symplectic_euler",
+    "verlet",
+    "rk4",
+    "backward_euler",
+    "bdf2",
+)
+
+SPRING_KINDS: tuple[str, ...] = ("structural", "shear", "bend")
+CORNERS: tuple[str, ...] = ("top_left", "top_right", "bottom_left", "bottom_right")
+PLANES: tuple[str, ...] = ("xy", "xz", "yz")
+PRECONDITIONERS: tuple[str, ...] = ("block_jacobi",)
+
+DEFAULTS: dict[str, dict[str, Any]] = {
+    "simulation": {"integrator": "backward_euler", "dt": 0.01, "duration": 1.0, "frame_rate": 30.0},
+    "solver": {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "block_jacobi"},
+}
+
+_TOP_KEYS = ("simulation", "solver", "cloth", "effects")
+_SIM_KEYS = ("integrator", "dt", "duration", "frame_rate", "divergence_factor")
+_SOLVER_KEYS = ("tolerance", "max_iterations", "preconditioner")
+_CLOTH_KEYS = (
+    "size", "resolution", "center", "plane", "mesh", "scale", "translation",
+    "mass", "density", "pins", "material", "springs", "velocity",
+)
+_EFFECT_KEYS = ("gravity", "drag", "wind")
+
+
+# --------------------------------------------------------------------------- checks
+def _fmt(value: Any) -> str:
+    return repr(value) if isinstance(value, str) else str(value)
+
+
+def _fail(path: str, what: str, value: Any) -> SceneError:
+    return SceneError(f"{path}: {what}, got {_fmt(value)}")
+
+
+def _check_keys(path: str, table: Any, allowed: Iterable[str]) -> Mapping[str, Any]:
+    if not isinstance(table, Mapping):
+        raise _fail(path or "scene", "must be a table", table)
+    allowed = tuple(allowed)
+    for key in table:
+        if key not in allowed:
+            where = f"{path}.{key}" if path else str(key)
+            near = difflib.get_close_matches(str(key), allowed, n=1, cutoff=0.6)
+            hint = f" (did you mean '{near[0]}'?)" if near else f" (allowed: {', '.join(allowed)})"
+            raise SceneError(f"{where}: unknown key{hint}")
+    return table
+
+
+def _number(path: str, value: Any, *, lo: float | None = None, lo_open: bool = False,
+            hi: float | None = None) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if lo_open else value >= lo
+    if ok and hi is not None:
+        ok = value <= hi
+    if not ok:
+        rng = ""
+        if lo is not None:
+            rng += f" {'>' if lo_open else '>='} {lo:g}"
+        if hi is not None:
+            rng += f"{' and' if lo is not None else ''} <= {hi:g}"
+        raise _fail(path, f"must be a finite number{rng}", value)
+    return float(value)
+
+
+def _integer(path: str, value: Any, *, lo: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < lo:
+        raise _fail(path, f"must be an integer >= {lo}", value)
+    return int(value)
+
+
+def _vector(path: str, value: Any, n: int, *, positive: bool = False) -> list[float]:
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise _fail(path, f"must be a list of {n} numbers", value)
+    return [_number(f"{path}[{k}]", x, lo=0.0 if positive else None, lo_open=positive)
+            for k, x in enumerate(value)]
+
+
+def _choice(path: str, value: Any, choices: Iterable[str]) -> str:
+    choices = tuple(choices)
+    if not isinstance(value, str) or value not in choices:
+        near = difflib.get_close_matches(str(value), choices, n=1, cutoff=0.6) if isinstance(value, str) else []
+        hint = f" (did you mean '{near[0]}'?)" if near else ""
+        raise _fail(path, f"must be one of {', '.join(choices)}{hint}", value)
+    return value
+
+
+# --------------------------------------------------------------------------- sections
+def _simulation(d: Mapping[str, Any]) -> dict[str, Any]:
+    _check_keys("simulation", d, _SIM_KEYS)
+    out = dict(DEFAULTS["simulation"])
+    if "integrator" in d:
+        out["integrator"] = _choice("simulation.integrator", d["integrator"], INTEGRATORS)
+    if "dt" in d:
+        out["dt"] = _number("simulation.dt", d["dt"], lo=0.0, lo_open=True)
+    if "duration" in d:
+        out["duration"] = _number("simulation.duration", d["duration"], lo=0.0, lo_open=True)
+    if "frame_rate" in d:
+        out["frame_rate"] = _number("simulation.frame_rate", d["frame_rate"], lo=0.0, lo_open=True)
+    if "divergence_factor" in d:
+        out["divergence_factor"] = _number("simulation.divergence_factor", d["divergence_factor"], lo=1.0)
+    return out
+
+
+def _solver(d: Mapping[str, Any]) -> dict[str, Any]:
+    _check_keys("solver", d, _SOLVER_KEYS)
+    out = dict(DEFAULTS["solver"])
+    if "tolerance" in d:
+        out["tolerance"] = _number("solver.tolerance", d["tolerance"], lo=0.0, lo_open=True, hi=1.0)
+    if "max_iterations" in d:
+        out["max_iterations"] = _integer("solver.max_iterations", d["max_iterations"], lo=1)
+    if "preconditioner" in d:
+        out["preconditioner"] = _choice("solver.preconditioner", d["preconditioner"], PRECONDITIONERS)
+    return out
+
+
+def _pins(value: Any) -> list[dict[str, Any]]:
+    if not isinstance(value, (list, tuple)):
+        raise _fail("cloth.pins", "must be a list of vertex indices, corner names or tables", value)
+    groups: list[dict[str, Any]] = []
+    loose: list[int | str] = []
+
+    def vertex(path: str, v: Any) -> int | str:
+        if isinstance(v, str):
+            return _choice(path, v, CORNERS)
+        return _integer(path, v, lo=0)
+
+    for k, item in enumerate(value):
+        path = f"cloth.pins[{k}]"
+        if isinstance(item, Mapping):
+            _check_keys(path, item, ("vertices", "velocity"))
+            if "vertices" not in item:
+                raise SceneError(f"{path}.vertices: missing (a pin table needs its vertices)")
+            verts = item["vertices"]
+            if not isinstance(verts, (list, tuple)) or not verts:
+                raise _fail(f"{path}.vertices", "must be a non-empty list of vertex indices or corner names", verts)
+            groups.append({
+                "vertices": [vertex(f"{path}.vertices[{m}]", v) for m, v in enumerate(verts)],
+                "velocity": _vector(f"{path}.velocity", item.get("velocity", [0.0, 0.0, 0.0]), 3),
+                "path": path,
+            })
+        else:
+            loose.append(vertex(path, item))
+    if loose:
+        groups.insert(0, {"vertices": loose, "velocity": [0.0, 0.0, 0.0], "path": "cloth.pins"})
+    return groups
+
+
+def _springs(d: Any, material: str | None) -> dict[str, dict[str, float]]:
+    out: dict[str, dict[str, float]] = {}
+    if material is not None:
+        for kind, p in MATERIALS[material].springs().items():
+            out[kind] = {"stiffness": p.stiffness, "damping": p.damping}
+    if d is None:
+        return out
+    _check_keys("cloth.springs", d, SPRING_KINDS)
+    for kind, spec in d.items():
+        path = f"cloth.springs.{kind}"
+        _check_keys(path, spec, ("stiffness", "damping"))
+        base = out.get(kind, {})
+        if "stiffness" not in spec and "stiffness" not in base:
+            raise SceneError(f"{path}.stiffness: missing (no material preset supplies it)")
+        out[kind] = {
+            "stiffness": _number(f"{path}.stiffness", spec["stiffness"], lo=0.0) if "stiffness" in spec
+            else base["stiffness"],
+            "damping": _number(f"{path}.damping", spec["damping"], lo=0.0) if "damping" in spec
+            else base.get("damping", 0.0),
+        }
+    return out
+
+
+def _cloth(d: Any, base_dir: Path | None) -> dict[str, Any]:
+    _check_keys("cloth", d, _CLOTH_KEYS)
+    out: dict[str, Any] = {}
+    if "mesh" in d:
+        for key in ("size", "resolution", "plane", "center"):
+            if key in d:
+                raise SceneError(f"cloth.{key}: not used with cloth.mesh (a mesh cloth takes scale and translation)")
+        mesh = d["mesh"]
+        if not isinstance(mesh, str) or not mesh:
+            raise _fail("cloth.mesh", "must be a path to a mesh file", mesh)
+        path = Path(mesh)
+        if not path.is_absolute() and base_dir is not None:
+            path = base_dir / path
+        out["kind"] = "mesh"
+        out["mesh"] = str(path)
+        out["scale"] = _number("cloth.scale", d.get("scale", 1.0), lo=0.0, lo_open=True)
+        out["translation"] = _vector("cloth.translation", d.get("translation", [0.0, 0.0, 0.0]), 3)
+    else:
+        for key in ("scale", "translation"):
+            if key in d:
+                raise SceneError(f"cloth.{key}: only used with cloth.mesh (a grid cloth takes size and center)")
+        out["kind"] = "grid"
+        out["size"] = _vector("cloth.size", d.get("size", [1.0, 1.0]), 2, positive=True)
+        res = d.get("resolution", [32, 32])
+        if not isinstance(res, (list, tuple)) or len(res) != 2:
+            raise _fail("cloth.resolution", "must be a list of 2 integers >= 2", res)
+        out["resolution"] = [_integer(f"cloth.resolution[{k}]", r, lo=2) for k, r in enumerate(res)]
+        out["center"] = _vector("cloth.center", d.get("center", [0.0, 0.0, 0.0]), 3)
+        out["plane"] = _choice("cloth.plane", d.get("plane", "xz"), PLANES)
+
+    material = None
+    if "material" in d:
+        material = _choice("cloth.material", d["material"], MATERIALS.keys())
+    out["material"] = material
+    if "mass" in d and "density" in d:
+        raise SceneError("cloth.density: give either cloth.mass or cloth.density, not both")
+    if "mass" in d:
+        out["mass"] = _number("cloth.mass", d["mass"], lo=0.0, lo_open=True)
+    elif "density" in d:
+        out["density"] = _number("cloth.density", d["density"], lo=0.0, lo_open=True)
+    elif material is not None:
+        out["density"] = MATERIALS[material].density
+    else:
+        raise SceneError("cloth.mass: missing (give cloth.mass in kg, cloth.density in kg/m^2, or a material)")
+    out["velocity"] = _vector("cloth.velocity", d.get("velocity", [0.0, 0.0, 0.0]), 3)
+    out["pins"] = _pins(d.get("pins", []))
+    out["springs"] = _springs(d.get("springs"), material)
+    return out
+
+
+def _effects(d: Any) -> dict[str, Any]:
+    _check_keys("effects", d, _EFFECT_KEYS)
+    out: dict[str, Any] = {}
+    if "gravity" in d:
+        out["gravity"] = _vector("effects.gravity", d["gravity"], 3)
+    if "drag" in d:
+        out["drag"] = _number("effects.drag", d["drag"], lo=0.0)
+    if "wind" in d:
+        w = d["wind"]
+        _check_keys("effects.wind", w, ("velocity",))
+        if "velocity" not in w:
+            raise SceneError("effects.wind.velocity: missing (wind needs a velocity [vx, vy, vz] in m/s)")
+        out["wind"] = {"velocity": _vector("effects.wind.velocity", w["velocity"], 3)}
+        if "drag" not in out:
+            raise SceneError(
+                "effects.drag: missing (wind acts through air drag; set effects.drag, the drag coefficient "
+                "in N*s/m^3, for effects.wind to have an effect)")
+    return out
+
+
+# --------------------------------------------------------------------------- Scene
+class Scene:
+    """A validated scene.
+
+    Parameters
+    ----------
+    data : mapping
+        The raw scene (as read from TOML).
+    base_dir : path, optional
+        Directory that relative paths in the scene (mesh files) are resolved against.
+
+    Attributes
+    ----------
+    data : dict
+        The normalised scene: every table present, every default filled in.
+    """
+
+    def __init__(self, data: Mapping[str, Any], base_dir: str | os.PathLike[str] | None = None) -> None:
+        self.base_dir = Path(base_dir) if base_dir is not None else None
+        self.source: dict[str, Any] = copy.deepcopy(dict(data)) if isinstance(data, Mapping) else data
+        self.data = self._validate(data)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], base_dir: str | os.PathLike[str] | None = None) -> "Scene":
+        """Validate a scene given as a nested dict with the same keys as the TOML file."""
+        return cls(data, base_dir=base_dir)
+
+    def _validate(self, data: Any) -> dict[str, Any]:
+        _check_keys("", data, _TOP_KEYS)
+        if "cloth" not in data:
+            raise SceneError("cloth: missing (a scene needs a [cloth] table)")
+        return {
+            "simulation": _simulation(data.get("simulation", {})),
+            "solver": _solver(data.get("solver", {})),
+            "cloth": _cloth(data["cloth"], self.base_dir),
+            "effects": _effects(data.get("effects", {})),
+        }
+
+    def replace(self, **sections: Mapping[str, Any]) -> "Scene":
+        """A new scene with some keys of some tables overridden, e.g. ``replace(simulation={"dt": 0.02})``."""
+        raw = copy.deepcopy(self.source)
+        for name, updates in sections.items():
+            raw.setdefault(name, {})
+            raw[name].update(updates)
+        return Scene(raw, base_dir=self.base_dir)
+
+    @property
+    def effects(self) -> list[str]:
+        """The names of the effects this scene declares, in evaluation order."""
+        names = [k for k in ("gravity", "drag", "wind") if k in self.data["effects"]]
+        names += [k for k in SPRING_KINDS if k in self.data["cloth"]["springs"]]
+        return names
+
+    def __repr__(self) -> str:
+        c = self.data["cloth"]
+        what = f"grid {c['resolution'][0]}x{c['resolution'][1]}" if c["kind"] == "grid" else f"mesh {c['mesh']}"
+        return f"Scene({what}, effects={self.effects})"
+
+
+def load_scene(path: str | os.PathLike[str]) -> Scene:
+    """Read and validate a TOML scene file.
+
+    Relative paths inside the scene (mesh files) are resolved against the
+    scene file's directory.
+
+    Raises
+    ------
+    SceneError
+        If the file cannot be read, is not valid TOML, or fails validation.
+    """
+    p = Path(path)
+    try:
+        text = p.read_bytes()
+    except OSError as exc:
+        raise SceneError(f"{p}: cannot read scene file ({exc.strerror or exc})") from None
+    if not text.strip():
+        raise SceneError(f"{p}: scene file is empty")
+    try:
+        data = tomllib.loads(text.decode("utf-8"))
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise SceneError(f"{p}: not a valid TOML file ({exc})") from None
+    return Scene(data, base_dir=p.parent)

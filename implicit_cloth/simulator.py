@@ -1,0 +1,326 @@
+"""The user-facing driver: :class:`Simulator` steps a scene, :class:`Trajectory` holds a run."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from . import diagnostics
+from .errors import DivergenceError, SceneError, SolverWarning
+from .integrators import make_integrator
+from .io import save_npz
+from .model import Model, State
+from .scene import Scene, load_scene
+
+
+class Trajectory:
+    """Kept frames of a run.
+
+    Attributes
+    ----------
+    positions : (F, N, 3) array
+        Vertex positions at each kept frame, m.
+    times : (F,) array
+        Simulated time of each frame, s.
+    faces : (T, 3) int array
+        The cloth's triangles.
+    report : dict
+        Run report: per-frame energies, strain, solver figures and timings,
+        plus the integrator, dt, active effects and ``status``.
+    """
+
+    def __init__(self, positions: np.ndarray, times: np.ndarray, faces: np.ndarray,
+                 report: dict[str, Any] | None = None) -> None:
+        self.positions = positions
+        self.times = times
+        self.faces = faces
+        self.report = report if report is not None else {}
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write ``positions``, ``times`` and ``faces`` to a ``.npz`` file (atomically)."""
+        return save_npz(path, positions=self.positions, times=self.times, faces=self.faces)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> "Trajectory":
+        """Read a trajectory written by :meth:`save` (the report is not part of the file)."""
+        with np.load(path) as z:
+            return cls(z["positions"], z["times"], z["faces"])
+
+    def __repr__(self) -> str:
+        return f"Trajectory({len(self)} frames, {self.positions.shape[1]} vertices, status={self.report.get('status')})"
+
+
+def _frame_steps(n_steps: int, dt: float, duration: float, frame_rate: float) -> np.ndarray:
+    """Step indices kept as frames: t = 0, 1/frame_rate, ... and the end, at the nearest step."""
+    if frame_rate * dt >= 1.0:
+        return np.arange(n_steps + 1)
+    k = np.arange(int(math.floor(duration * frame_rate + 1e-9)) + 1)
+    steps = np.rint(k / (frame_rate * dt)).astype(np.int64)
+    return np.unique(np.clip(np.append(steps, n_steps), 0, n_steps))
+
+
+class Simulator:
+    """Simulate a scene with one of the integrators.
+
+    Parameters
+    ----------
+    scene : Scene, mapping or path
+        The scene (a TOML path is loaded with :func:`~implicit_cloth.load_scene`).
+    integrator : str, optional
+        One of :data:`~implicit_cloth.INTEGRATORS`; overrides ``simulation.integrator``.
+    dt : float, optional
+        Time step, s; overrides ``simulation.dt``.
+    solver : mapping, optional
+        Overrides of the ``[solver]`` table (``tolerance``, ``max_iterations``,
+        ``preconditioner``).
+    **simulation
+        Other ``[simulation]`` overrides (``duration``, ``frame_rate``,
+        ``divergence_factor``).
+
+    Examples
+    --------
+    >>> sim = Simulator(scene, integrator="backward_euler", dt=0.01)
+    >>> sim.step(10)
+    >>> traj = sim.run(duration=2.0)
+    """
+
+    def __init__(self, scene: Scene | Mapping[str, Any] | str | os.PathLike[str], integrator: str | None = None,
+                 dt: float | None = None, solver: Mapping[str, Any] | None = None, **simulation: Any) -> None:
+        if isinstance(scene, (str, os.PathLike)):
+            scene = load_scene(scene)
+        elif not isinstance(scene, Scene):
+            scene = Scene.from_dict(scene)
+        overrides = dict(simulation)
+        if integrator is not None:
+            overrides["integrator"] = integrator
+        if dt is not None:
+            overrides["dt"] = dt
+        if overrides or solver:
+            scene = scene.replace(**({"simulation": overrides} if overrides else {}),
+                                  **({"solver": dict(solver)} if solver else {}))
+        self.scene = scene
+        sim = scene.data["simulation"]
+        self.integrator_name: str = sim["integrator"]
+        self.dt: float = sim["dt"]
+        self.model = Model(scene)
+        self.integrator = make_integrator(self.integrator_name, self.model, scene.data["solver"])
+        x = self.model.rest_positions.copy()
+        v = np.broadcast_to(np.asarray(scene.data["cloth"]["velocity"], dtype=float), x.shape).copy()
+        self.model.apply_pins(x, v, 0.0)
+        self.state = State(x, v, 0.0)
+        self.last_step: Any = None
+
+    # ------------------------------------------------------------------ state access
+    @property
+    def positions(self) -> np.ndarray:
+        """Vertex positions (N, 3), m. Assigning sets the state; pins then follow the assigned positions."""
+        return self.state.x
+
+    @positions.setter
+    def positions(self, x: Any) -> None:
+        x = self._checked(x, "positions")
+        self.model.set_pin_anchors(x, self.state.t)
+        self.state = State(x, self.state.v.copy(), self.state.t)
+        self.integrator.reset()
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """Vertex velocities (N, 3), m/s. Assigning sets the state (pinned vertices keep their pin velocity)."""
+        return self.state.v
+
+    @velocities.setter
+    def velocities(self, v: Any) -> None:
+        v = self._checked(v, "velocities")
+        x = self.state.x.copy()
+        self.model.apply_pins(x, v, self.state.t)
+        self.state = State(x, v, self.state.t)
+        self.integrator.reset()
+
+    @property
+    def time(self) -> float:
+        """Simulated time, s."""
+        return self.state.t
+
+    def _checked(self, a: Any, what: str) -> np.ndarray:
+        a = np.array(a, dtype=float)
+        if a.shape != (self.model.n, 3):
+            raise ValueError(f"{what}: must have shape ({self.model.n}, 3), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{what}: must be finite, got {int((~np.isfinite(a)).sum())} non-finite values")
+        return a
+
+    # ------------------------------------------------------------------ stepping
+    def _advance(self) -> Any:
+        with np.errstate(over="ignore", invalid="ignore"):   # a blow-up is reported below, not warned
+            new, info = self.integrator.step(self.state, self.dt)
+        if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
+            raise _NonFinite(f"non-finite state at t={new.t:.6g} s")
+        self.state = new
+        self.last_step = info
+        return info
+
+    def step(self, n: int = 1) -> None:
+        """Advance ``n`` steps of ``dt``.
+
+        Raises
+        ------
+        DivergenceError
+            If a step produces a non-finite state (the state stays at the last finite step).
+        """
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+            raise ValueError(f"n: must be an integer >= 0, got {n!r}")
+        for _ in range(int(n)):
+            try:
+                self._advance()
+            except _NonFinite as exc:
+                raise DivergenceError(str(exc)) from None
+
+    def run(self, duration: float | None = None, frame_rate: float | None = None,
+            progress: bool = False) -> Trajectory:
+        """Simulate ``duration`` seconds from the current state, keeping frames.
+
+        Frames are kept at ``t0 + k / frame_rate`` for ``k = 0, 1, ...`` up to and
+        including ``t0 + duration`` (at the nearest step when ``dt`` does not
+        divide them; every step when ``frame_rate >= 1/dt``).
+
+        Raises
+        ------
+        DivergenceError
+            On a non-finite state or energy growth beyond the divergence bound
+            (:mod:`implicit_cloth.diagnostics`); ``err.trajectory`` holds the
+            frames kept before it, with ``report["status"] == "diverged"``.
+        """
+        sim = self.scene.data["simulation"]
+        duration = sim["duration"] if duration is None else duration
+        frame_rate = sim["frame_rate"] if frame_rate is None else frame_rate
+        for key, val in (("duration", duration), ("frame_rate", frame_rate)):
+            if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val) or val <= 0:
+                raise SceneError(f"simulation.{key}: must be a finite number > 0, got {val!r}")
+        factor = sim.get("divergence_factor", diagnostics.DEFAULT_DIVERGENCE_FACTOR)
+        dt = self.dt
+        n_steps = max(1, int(round(duration / dt)))
+        keep = _frame_steps(n_steps, dt, duration, frame_rate)
+        model = self.model
+        e0 = diagnostics.measure(model, self.state.x, self.state.v)
+        scale = diagnostics.energy_scale(model, self.state.x, self.state.v, n_steps * dt)
+        bound = factor * scale
+
+        frames: dict[str, list[float]] = {k: [] for k in (
+            "time", "kinetic", "gravity", "springs", "potential", "total", "max_strain",
+            "solver_iterations", "solver_residual", "t_assembly", "t_setup", "t_solve", "t_other")}
+        positions: list[np.ndarray] = []
+        totals = {"steps": 0, "iterations": 0, "max_iterations": 0, "max_residual": 0.0, "unconverged_steps": 0}
+        acc = {"it": 0, "res": 0.0, "t_assembly": 0.0, "t_setup": 0.0, "t_solve": 0.0, "t_other": 0.0}
+
+        def keep_frame(m: dict[str, float]) -> None:
+            positions.append(self.state.x.copy())
+            frames["time"].append(self.state.t)
+            for k in ("kinetic", "gravity", "springs", "potential", "total", "max_strain"):
+                frames[k].append(m[k])
+            frames["solver_iterations"].append(acc["it"])
+            frames["solver_residual"].append(acc["res"])
+            for k in ("t_assembly", "t_setup", "t_solve", "t_other"):
+                frames[k].append(acc[k])
+                acc[k] = 0.0
+            acc["it"], acc["res"] = 0, 0.0
+
+        status, reason = "ok", ""
+        wall0 = time.perf_counter()
+        keep_frame(e0)
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=n_steps, unit="step", desc=f"{self.integrator_name} dt={dt:g}", leave=False)
+        next_frame = 1
+        try:
+            for s in range(1, n_steps + 1):
+                ts = time.perf_counter()
+                try:
+                    info = self._advance()
+                except _NonFinite as exc:
+                    status, reason = "diverged", f"{exc} (step {s} of {n_steps})"
+                    break
+                totals["steps"] += 1
+                totals["iterations"] += info.iterations
+                totals["max_iterations"] = max(totals["max_iterations"], info.iterations)
+                totals["max_residual"] = max(totals["max_residual"], info.residual)
+                totals["unconverged_steps"] += int(not info.converged)
+                acc["it"] = max(acc["it"], info.iterations)
+                acc["res"] = max(acc["res"], info.residual)
+                acc["t_assembly"] += info.t_assembly
+                acc["t_setup"] += info.t_setup
+                acc["t_solve"] += info.t_solve
+                if next_frame < len(keep) and s == keep[next_frame]:
+                    m = diagnostics.measure(model, self.state.x, self.state.v)
+                    if m["total"] - e0["total"] > bound:
+                        status = "diverged"
+                        reason = (f"energy grew by {m['total'] - e0['total']:.3g} J at t={self.state.t:.6g} s "
+                                  f"(step {s} of {n_steps}), beyond the bound {bound:.3g} J "
+                                  f"= {factor:g} x energy scale {scale:.3g} J")
+                        break
+                    acc["t_other"] += time.perf_counter() - ts - info.t_assembly - info.t_setup - info.t_solve
+                    keep_frame(m)
+                    next_frame += 1
+                else:
+                    acc["t_other"] += time.perf_counter() - ts - info.t_assembly - info.t_setup - info.t_solve
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
+        wall = time.perf_counter() - wall0
+
+        report = {
+            "status": status,
+            "reason": reason,
+            "integrator": self.integrator_name,
+            "dt": dt,
+            "duration": duration,
+            "frame_rate": frame_rate,
+            "effects": list(model.effect_names),
+            "n_vertices": model.n,
+            "n_springs": {k: sl.stop - sl.start for k, sl in model.springs.kinds.items()} if model.springs else {},
+            "n_pinned": int(len(model.pinned)),
+            "total_mass": model.total_mass,
+            "steps": totals["steps"],
+            "solver": None,
+            "divergence_bound": {"factor": factor, "energy_scale": scale, "bound": bound},
+            "wall_time": wall,
+            "timing": {k: float(np.sum(frames[k])) for k in ("t_assembly", "t_setup", "t_solve", "t_other")},
+            "frames": frames,
+        }
+        if self.integrator.implicit:
+            n = max(totals["steps"], 1)
+            report["solver"] = {
+                "tolerance": self.integrator.tolerance,
+                "max_iterations_allowed": self.integrator.max_iterations,
+                "preconditioner": self.integrator.precond.name,
+                "mean_iterations": totals["iterations"] / n,
+                "max_iterations": totals["max_iterations"],
+                "max_residual": totals["max_residual"],
+                "unconverged_steps": totals["unconverged_steps"],
+            }
+            if totals["unconverged_steps"]:
+                warnings.warn(
+                    f"the linear solver did not reach tolerance {self.integrator.tolerance:g} in "
+                    f"{totals['unconverged_steps']} of {totals['steps']} steps (max residual "
+                    f"{totals['max_residual']:.3g}); raise solver.max_iterations or reduce dt",
+                    SolverWarning, stacklevel=2)
+        traj = Trajectory(np.array(positions), np.array(frames["time"]), model.faces.copy(), report)
+        if status == "diverged":
+            raise DivergenceError(reason, traj)
+        return traj
+
+
+class _NonFinite(Exception):
+    """Internal: a step produced NaN or inf (the state was not committed)."""
