@@ -14,6 +14,7 @@ top. Springs follow the classic mass-spring cloth (Provot 1995):
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,10 +47,10 @@ class ClothGeometry:
     def n_vertices(self) -> int:
         return len(self.positions)
 
-    def corner(self, name: str) -> int:
+    def corner(self, name: str, where: str = "cloth.pins") -> int:
         """Index of a named corner of a grid cloth (``top_left`` is ``i = 0, j = ny-1``)."""
         if self.grid_shape is None:
-            raise SceneError(f"cloth.pins: corner name {name!r} only applies to a grid cloth; use vertex indices")
+            raise SceneError(f"{where}: corner name {name!r} only applies to a grid cloth; use vertex indices")
         nx, ny = self.grid_shape
         return {
             "bottom_left": 0,
@@ -156,10 +157,10 @@ def from_mesh(path: str, scale: float = 1.0, translation=(0.0, 0.0, 0.0),
     """
     import trimesh  # deferred: only mesh cloths need it
 
+    if not os.path.isfile(path):
+        raise SceneError(f"cloth.mesh: file not found, got {path!r}")
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
-    except FileNotFoundError:
-        raise SceneError(f"cloth.mesh: file not found, got {path!r}") from None
     except Exception as exc:  # trimesh raises many types for bad files
         raise SceneError(f"cloth.mesh: cannot read mesh file {path!r} ({type(exc).__name__}: {exc})") from None
     faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)

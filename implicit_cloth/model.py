@@ -98,8 +98,8 @@ class Model:
         seen: dict[int, str] = {}
         for g in groups:
             for m, v in enumerate(g["vertices"]):
-                where = f"{g['path']}" if g["path"] == "cloth.pins" else f"{g['path']}.vertices[{m}]"
-                p = self.geometry.corner(v) if isinstance(v, str) else int(v)
+                where = g["paths"][m]
+                p = self.geometry.corner(v, where) if isinstance(v, str) else int(v)
                 if p >= self.n:
                     raise SceneError(f"{where}: vertex index out of range (the cloth has {self.n} vertices), got {v}")
                 if p in seen:

@@ -151,6 +151,7 @@ def _pins(value: Any) -> list[dict[str, Any]]:
         raise _fail("cloth.pins", "must be a list of vertex indices, corner names or tables", value)
     groups: list[dict[str, Any]] = []
     loose: list[int | str] = []
+    loose_paths: list[str] = []
 
     def vertex(path: str, v: Any) -> int | str:
         if isinstance(v, str):
@@ -166,15 +167,17 @@ def _pins(value: Any) -> list[dict[str, Any]]:
             verts = item["vertices"]
             if not isinstance(verts, (list, tuple)) or not verts:
                 raise _fail(f"{path}.vertices", "must be a non-empty list of vertex indices or corner names", verts)
+            paths = [f"{path}.vertices[{m}]" for m in range(len(verts))]
             groups.append({
-                "vertices": [vertex(f"{path}.vertices[{m}]", v) for m, v in enumerate(verts)],
+                "vertices": [vertex(p, v) for p, v in zip(paths, verts)],
                 "velocity": _vector(f"{path}.velocity", item.get("velocity", [0.0, 0.0, 0.0]), 3),
-                "path": path,
+                "paths": paths,
             })
         else:
             loose.append(vertex(path, item))
+            loose_paths.append(path)
     if loose:
-        groups.insert(0, {"vertices": loose, "velocity": [0.0, 0.0, 0.0], "path": "cloth.pins"})
+        groups.insert(0, {"vertices": loose, "velocity": [0.0, 0.0, 0.0], "paths": loose_paths})
     return groups
 
 
