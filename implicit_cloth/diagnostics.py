@@ -7,12 +7,14 @@ step) or when, at a kept frame, its total energy has grown by more than
 ``divergence_factor`` (default 1000, ``simulation.divergence_factor``) times
 the run's energy scale::
 
-    E_total(t) - E_total(0) > divergence_factor * E_scale
+    E_total(t) - E_total(0) - W_pins(t) > divergence_factor * E_scale
     E_scale = E_kin(0) + U_spring(0) + m |g| L + m v_ref^2 / 2
     L       = initial bounding-box diagonal + max pin speed * T + |g| T^2 / 2
     v_ref   = max pin speed + wind speed + max initial vertex speed
 
-with ``m`` the cloth's mass and ``T`` the run's duration (``L`` bounds how far
+with ``W_pins`` the work done on the cloth by moving pins (:func:`pin_power`,
+integrated by the trapezoidal rule over each step; 0 when no pin moves),
+``m`` the cloth's mass and ``T`` the run's duration (``L`` bounds how far
 anything can travel); when all those terms vanish (a cloth at rest with nothing
 acting on it) ``E_scale = m (L / T)^2 / 2``.
 Total energy includes gravity, so free fall does not count as growth; a stable
@@ -72,3 +74,16 @@ def energy_scale(model: Model, x: np.ndarray, v: np.ndarray, duration: float) ->
     if scale <= 0.0:
         scale = 0.5 * m * (L / duration) ** 2
     return scale
+
+
+def pin_power(model: Model, x: np.ndarray, v: np.ndarray, t: float) -> float:
+    """Power delivered to the cloth by its pins, W.
+
+    A pinned vertex moves at constant velocity ``w_p``, so the pin exerts the
+    force ``-F_p`` that cancels the effects' force ``F_p`` on it; its power is
+    ``P = -sum_p F_p . w_p``.
+    """
+    if not len(model.pinned) or not np.any(model.pin_velocity):
+        return 0.0
+    f = model.forces(x, v, t)[model.pinned]
+    return -float(np.einsum("ij,ij->", f, model.pin_velocity))
