@@ -1,0 +1,228 @@
+"""Command-line interface: ``implicit-cloth run SCENE.toml``.
+
+Usage::
+
+    implicit-cloth run SCENE.toml [--out DIR] [--integrator NAME] [--dt S]
+                       [--duration S] [--frame-rate HZ] [--no-progress] [--debug]
+
+``run`` simulates a scene and writes ``DIR/trajectory.npz`` (``positions``,
+``times``, ``faces``; see :meth:`~implicit_cloth.Trajectory.save`) and
+``DIR/report.json`` (the run report plus the normalised scene under
+``"scene"``). ``DIR`` defaults to ``out/<scene file stem>``.
+
+Exit codes
+----------
+0
+    The run finished (``status`` ``"ok"``).
+1
+    The results could not be written (an operating-system error after the run).
+2
+    Bad input: an invalid or unreadable scene, an invalid override
+    (``--dt -1``, ``--integrator nonsense``), an unusable ``--out`` or a usage
+    error. One line ``implicit-cloth: error: ...`` on stderr (a traceback too
+    with ``--debug``).
+3
+    The run diverged: the frames kept before it are written to
+    ``trajectory.npz``, ``report.json`` has ``status`` ``"diverged"`` and the
+    reason, and the reason is printed on stderr.
+
+The parser uses subcommands so that later ones (bench, batch, export, render)
+slot in beside ``run``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import traceback
+import warnings
+from pathlib import Path
+from typing import Any, Sequence
+
+from . import __version__
+from .errors import DivergenceError, SceneError
+from .io import save_json
+from .scene import INTEGRATORS, load_scene
+from .simulator import Simulator, Trajectory
+
+PROG = "implicit-cloth"
+
+EXIT_OK = 0
+EXIT_WRITE_FAILED = 1
+EXIT_BAD_INPUT = 2
+EXIT_DIVERGED = 3
+
+
+# --------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser (one subparser per subcommand)."""
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="Mass-spring cloth simulation with Baraff-Witkin implicit integration.",
+        epilog="Exit codes: 0 ok, 1 results could not be written, 2 bad input, 3 diverged.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    run = sub.add_parser(
+        "run", help="simulate a scene and write trajectory.npz and report.json",
+        description="Simulate a TOML scene. Writes DIR/trajectory.npz (positions, times, faces) and "
+                    "DIR/report.json (run report and normalised scene). Options override the scene's "
+                    "[simulation] table and are validated like it.",
+        epilog="Exit codes: 0 ok, 1 results could not be written, 2 bad input, 3 diverged "
+               "(partial trajectory and report still written).",
+    )
+    run.add_argument("scene", metavar="SCENE.toml", help="scene file")
+    run.add_argument("--out", metavar="DIR", default=None,
+                     help="output directory (default: out/<scene file stem>)")
+    run.add_argument("--integrator", metavar="NAME", default=None,
+                     help=f"override simulation.integrator: {', '.join(INTEGRATORS)}")
+    run.add_argument("--dt", metavar="S", type=float, default=None, help="override simulation.dt, s")
+    run.add_argument("--duration", metavar="S", type=float, default=None,
+                     help="override simulation.duration, s")
+    run.add_argument("--frame-rate", metavar="HZ", type=float, default=None, dest="frame_rate",
+                     help="override simulation.frame_rate, kept frames per simulated second")
+    run.add_argument("--no-progress", action="store_true",
+                     help="no progress bar (it is only shown when stderr is a terminal)")
+    run.add_argument("--debug", action="store_true", help="print tracebacks of errors")
+    run.set_defaults(handler=cmd_run)
+    return parser
+
+
+# --------------------------------------------------------------------------- helpers
+def _error(message: str, debug: bool = False) -> None:
+    """Print the one-line error (after the traceback of the exception being handled, with --debug)."""
+    if debug:
+        traceback.print_exc(file=sys.stderr)
+    print(f"{PROG}: error: {message}", file=sys.stderr)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _write_outputs(out: Path, traj: Trajectory, scene_data: dict[str, Any]) -> tuple[Path, Path]:
+    """Write DIR/trajectory.npz and DIR/report.json (both atomically)."""
+    npz = traj.save(out / "trajectory.npz")
+    report = dict(traj.report)
+    report["scene"] = scene_data
+    js = save_json(out / "report.json", report)
+    return npz, js
+
+
+def _fmt_e(x: float) -> str:
+    return f"{x:.6g}"
+
+
+def _summary(traj: Trajectory, npz: Path, js: Path) -> str:
+    r = traj.report
+    fr = r.get("frames", {})
+    steps = int(r.get("steps", 0))
+    wall = float(r.get("wall_time", 0.0))
+    ms = 1e3 * wall / steps if steps else float("nan")
+    lines = [
+        f"integrator   {r.get('integrator')}",
+        f"dt           {r.get('dt'):g} s",
+        f"vertices     {r.get('n_vertices')} ({r.get('n_pinned', 0)} pinned)",
+        f"steps        {steps}",
+        f"frames       {len(traj)} (t = {traj.times[0]:g} .. {traj.times[-1]:g} s)",
+        f"wall time    {wall:.3f} s ({ms:.3g} ms/step)",
+    ]
+    if fr.get("total"):
+        lines.append(
+            f"final energy kinetic {_fmt_e(fr['kinetic'][-1])} J, gravity {_fmt_e(fr['gravity'][-1])} J, "
+            f"springs {_fmt_e(fr['springs'][-1])} J, total {_fmt_e(fr['total'][-1])} J")
+        lines.append(f"max strain   {max(fr['max_strain']):.4g}")
+    s = r.get("solver")
+    if s:
+        lines.append(
+            f"solver       {s['preconditioner']} PCG, iterations mean {s['mean_iterations']:.1f} / "
+            f"max {s['max_iterations']}, max residual {s['max_residual']:.3g} (tolerance {s['tolerance']:g}), "
+            f"unconverged steps {s['unconverged_steps']}")
+    status = r.get("status")
+    lines.append(f"status       {status}" + (f" ({r['reason']})" if r.get("reason") else ""))
+    lines.append(f"trajectory   {npz}")
+    lines.append(f"report       {js}")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- run
+def cmd_run(args: argparse.Namespace) -> int:
+    """``implicit-cloth run``: simulate, write outputs, print a summary."""
+    debug = bool(args.debug)
+    scene_path = Path(args.scene)
+    out = Path(args.out) if args.out is not None else Path("out") / scene_path.stem
+
+    overrides: dict[str, Any] = {}
+    for key in ("integrator", "dt", "duration", "frame_rate"):
+        val = getattr(args, key)
+        if val is not None:
+            overrides[key] = val
+    try:
+        scene = load_scene(scene_path)
+        # Overrides go through Simulator's keywords, i.e. through scene validation.
+        sim = Simulator(scene, **overrides)
+    except SceneError as exc:
+        _error(_one_line(exc), debug)
+        return EXIT_BAD_INPUT
+
+    if out.exists() and not out.is_dir():
+        _error(f"--out: {str(out)!r} exists and is not a directory")
+        return EXIT_BAD_INPUT
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _error(f"--out: cannot create output directory {str(out)!r} ({exc.strerror or exc})", debug)
+        return EXIT_BAD_INPUT
+
+    progress = (not args.no_progress) and sys.stderr.isatty()
+    scene_data = sim.scene.data
+    caught: list[warnings.WarningMessage] = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("default")
+            traj = sim.run(progress=progress)
+        code = EXIT_OK
+    except DivergenceError as exc:
+        traj = exc.trajectory
+        code = EXIT_DIVERGED
+        if traj is None:  # not produced by Simulator.run, but be safe
+            _error(f"diverged: {_one_line(exc.reason)}", debug)
+            return code
+    except SceneError as exc:
+        _error(_one_line(exc), debug)
+        return EXIT_BAD_INPUT
+    finally:
+        for w in caught:  # e.g. SolverWarning: one line each, not a source location
+            print(f"{PROG}: warning: {_one_line(w.message)}", file=sys.stderr)
+
+    try:
+        npz, js = _write_outputs(out, traj, scene_data)
+    except OSError as exc:
+        _error(f"cannot write results to {str(out)!r} ({exc.strerror or exc})", debug)
+        return EXIT_WRITE_FAILED
+
+    print(_summary(traj, npz, js), flush=True)
+    if code == EXIT_DIVERGED:
+        print(f"{PROG}: diverged: {_one_line(traj.report.get('reason', ''))}", file=sys.stderr)
+    return code
+
+
+# --------------------------------------------------------------------------- entry point
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line ``argv`` (default ``sys.argv[1:]``) and return the exit code."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # usage errors (2), --help and --version (0)
+        code = exc.code
+        return code if isinstance(code, int) else (0 if code is None else EXIT_BAD_INPUT)
+    try:
+        return int(args.handler(args))
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,218 @@
+"""Command-line interface: outputs, exit codes and error messages."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from implicit_cloth.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SMALL = """\
+[simulation]
+integrator = "backward_euler"
+dt = 0.01
+duration = 0.1
+frame_rate = 50
+
+[cloth]
+size = [1.0, 1.0]
+resolution = [5, 5]
+center = [0.0, 0.0, 1.0]
+plane = "xz"
+mass = 0.1
+pins = ["top_left", "top_right"]
+
+[cloth.springs.structural]
+stiffness = 500.0
+damping = 0.1
+
+[cloth.springs.shear]
+stiffness = 50.0
+
+[effects]
+gravity = [0.0, 0.0, -9.81]
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = "scene.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def run(*args: str) -> int:
+    return main(["run", *args, "--no-progress"])
+
+
+def test_ok_run_writes_trajectory_and_report(tmp_path, capsys):
+    scene = write(tmp_path, SMALL)
+    out = tmp_path / "result"
+    assert run(str(scene), "--out", str(out)) == 0
+
+    with np.load(out / "trajectory.npz") as z:
+        pos, times, faces = z["positions"], z["times"], z["faces"]
+    assert pos.shape == (len(times), 25, 3)
+    assert np.all(np.isfinite(pos))
+    np.testing.assert_allclose(times, np.arange(6) * 0.02, atol=1e-12)   # 0, 1/50, ..., 0.1
+    assert faces.shape == (2 * 4 * 4, 3)
+
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "ok"
+    assert report["integrator"] == "backward_euler"
+    assert report["steps"] == 10
+    assert report["scene"]["cloth"]["resolution"] == [5, 5]
+    assert report["scene"]["simulation"]["dt"] == 0.01
+    assert len(report["frames"]["time"]) == len(times)
+
+    stdout = capsys.readouterr().out
+    for word in ("backward_euler", "vertices", "ms/step", "max strain", "unconverged steps", "status       ok",
+                 "trajectory.npz", "report.json"):
+        assert word in stdout
+
+
+def test_default_output_directory_is_out_slash_stem(tmp_path, monkeypatch):
+    scene = write(tmp_path, SMALL, "tiny_drape.toml")
+    monkeypatch.chdir(tmp_path)
+    assert run(str(scene)) == 0
+    assert (tmp_path / "out" / "tiny_drape" / "trajectory.npz").is_file()
+    assert (tmp_path / "out" / "tiny_drape" / "report.json").is_file()
+
+
+def test_overrides_are_applied_and_recorded(tmp_path):
+    scene = write(tmp_path, SMALL)
+    out = tmp_path / "o"
+    code = run(str(scene), "--out", str(out), "--integrator", "rk4", "--dt", "0.005",
+               "--duration", "0.05", "--frame-rate", "100")
+    assert code == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["integrator"] == "rk4" and report["solver"] is None
+    assert report["dt"] == 0.005 and report["steps"] == 10
+    assert report["scene"]["simulation"]["integrator"] == "rk4"
+    assert len(report["frames"]["time"]) == 6
+
+
+@pytest.mark.parametrize("edit, key", [
+    (("stiffness = 50.0", "stiffness = -5"), "cloth.springs.shear.stiffness"),
+    (("mass = 0.1", "mass = 0.1\nstifness = 3"), "cloth.stifness"),
+])
+def test_bad_scene_exits_2_with_one_line(tmp_path, capsys, edit, key):
+    scene = write(tmp_path, SMALL.replace(*edit))
+    out = tmp_path / "o"
+    assert run(str(scene), "--out", str(out)) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"implicit-cloth: error: {key}: ")
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_debug_shows_traceback(tmp_path, capsys):
+    scene = write(tmp_path, SMALL.replace("stiffness = 50.0", "stiffness = -5"))
+    assert run(str(scene), "--out", str(tmp_path / "o"), "--debug") == 2
+    err = capsys.readouterr().err
+    assert "Traceback" in err
+    assert err.rstrip().splitlines()[-1].startswith("implicit-cloth: error: cloth.springs.shear.stiffness")
+
+
+@pytest.mark.parametrize("text", [None, "", "[cloth\nmass = 1"])
+def test_unreadable_scene_exits_2(tmp_path, capsys, text):
+    path = tmp_path / "missing.toml" if text is None else write(tmp_path, text)
+    assert run(str(path), "--out", str(tmp_path / "o")) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("implicit-cloth: error: ") and err.count("\n") == 1 and "Traceback" not in err
+
+
+@pytest.mark.parametrize("args, key", [
+    (("--integrator", "nonsense"), "simulation.integrator"),
+    (("--dt", "-1"), "simulation.dt"),
+    (("--dt", "nan"), "simulation.dt"),
+    (("--duration", "0"), "simulation.duration"),
+    (("--frame-rate", "inf"), "simulation.frame_rate"),
+])
+def test_bad_override_exits_2(tmp_path, capsys, args, key):
+    scene = write(tmp_path, SMALL)
+    assert run(str(scene), "--out", str(tmp_path / "o"), *args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"implicit-cloth: error: {key}: ")
+    assert err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_usage_errors_exit_2(tmp_path, capsys):
+    assert main([]) == 2
+    assert main(["run"]) == 2
+    assert main(["run", str(write(tmp_path, SMALL)), "--dt", "abc"]) == 2
+    assert main(["--version"]) == 0
+
+
+def test_out_that_is_a_file_exits_2(tmp_path, capsys):
+    scene = write(tmp_path, SMALL)
+    blocker = write(tmp_path, "x", "not_a_dir")
+    assert run(str(scene), "--out", str(blocker)) == 2
+    assert "--out" in capsys.readouterr().err
+
+
+def test_divergent_run_exits_3_and_writes_partial_results(tmp_path, capsys):
+    stiff = (SMALL.replace("stiffness = 500.0", "stiffness = 1e5")
+             .replace('integrator = "backward_euler"', 'integrator = "forward_euler"')
+             .replace("dt = 0.01", "dt = 0.02").replace("duration = 0.1", "duration = 1.0"))
+    scene = write(tmp_path, stiff)
+    out = tmp_path / "o"
+    assert run(str(scene), "--out", str(out)) == 3
+
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "diverged"
+    assert report["reason"]
+    assert report["steps"] < 50
+    with np.load(out / "trajectory.npz") as z:
+        pos, times = z["positions"], z["times"]
+    assert 1 <= len(times) < 51 and pos.shape[0] == len(times)
+    assert np.all(np.isfinite(pos))
+    err = capsys.readouterr().err
+    assert err.startswith("implicit-cloth: diverged: ") and err.count("\n") == 1
+
+
+def test_readme_scene_is_valid_and_runs(tmp_path):
+    """The annotated scene in README.md uses every key; it must load and run."""
+    text = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```toml\n(.*?)```", text, re.S)
+    assert blocks, "README.md has no toml block"
+    scene = write(tmp_path, blocks[0], "readme.toml")
+    out = tmp_path / "readme"
+    assert run(str(scene), "--out", str(out), "--duration", "0.03", "--frame-rate", "100") == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["effects"] == ["gravity", "drag", "wind", "structural", "shear", "bend"]
+    assert report["n_pinned"] == 3
+
+
+def _console_script() -> str | None:
+    exe = Path(sys.executable).with_name("implicit-cloth" + (".exe" if os.name == "nt" else ""))
+    return str(exe) if exe.is_file() else shutil.which("implicit-cloth")
+
+
+@pytest.mark.parametrize("how", ["module", "console_script"])
+def test_subprocess_run_exits_0(tmp_path, how):
+    if how == "module":
+        cmd = [sys.executable, "-m", "implicit_cloth"]
+    else:
+        script = _console_script()
+        if script is None:
+            pytest.skip("implicit-cloth console script not installed (pip install -e .)")
+        cmd = [script]
+    scene = write(tmp_path, SMALL)
+    out = tmp_path / "sub"
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([*cmd, "run", str(scene), "--out", str(out)],
+                          capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "status       ok" in proc.stdout
+    assert proc.stderr == ""          # stderr is not a terminal: no progress bar
+    assert json.loads((out / "report.json").read_text())["status"] == "ok"
