@@ -80,7 +80,8 @@ def measure(scene: ic.Scene, n: int, dt: float, warmup: int, steps: int) -> dict
 def markdown(res: dict) -> str:
     lines = [
         f"Backward Euler, dt = {res['dt']:.6g} s, scene `{res['scene']}`, steps {res['warmup']}-"
-        f"{res['warmup'] + res['steps']} (median), {res['machine']['cpus']} cores, BLAS threads 1.",
+        f"{res['warmup'] + res['steps']} (median), preconditioner {res['preconditioner']}, "
+        f"{res['machine']['cpus']} cores, BLAS threads 1.",
         "",
         "| grid | vertices | ms/step | assembly | precond setup | solve | rest | CG its (median/max) "
         "| max residual | SpMV ms | step / SpMV |",
@@ -102,12 +103,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dt", type=float, default=1 / 60)
     p.add_argument("--warmup", type=int, default=20)
     p.add_argument("--steps", type=int, default=40)
+    p.add_argument("--preconditioner", choices=["multigrid", "block_jacobi"], default=None,
+                   help="override the scene's solver.preconditioner")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     p.add_argument("--quick", action="store_true", help="tiny sizes and few steps (CI smoke test)")
     a = p.parse_args(argv)
     if a.quick:
         a.sizes, a.warmup, a.steps = [8, 16], 2, 3
     scene = ic.load_scene(a.scene)
+    if a.preconditioner:
+        scene = scene.replace(solver={"preconditioner": a.preconditioner})
     rows = []
     for n in a.sizes:
         r = measure(scene, n, a.dt, a.warmup, a.steps)
@@ -119,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "step_cost",
         "scene": Path(a.scene).name,
         "dt": a.dt,
+        "preconditioner": scene.data["solver"]["preconditioner"],
         "warmup": a.warmup,
         "steps": a.steps,
         "quick": a.quick,

@@ -39,11 +39,11 @@ INTEGRATORS: tuple[str, ...] = (
 SPRING_KINDS: tuple[str, ...] = ("structural", "shear", "bend")
 CORNERS: tuple[str, ...] = ("top_left", "top_right", "bottom_left", "bottom_right")
 PLANES: tuple[str, ...] = ("xy", "xz", "yz")
-PRECONDITIONERS: tuple[str, ...] = ("block_jacobi",)
+PRECONDITIONERS: tuple[str, ...] = ("multigrid", "block_jacobi")
 
 DEFAULTS: dict[str, dict[str, Any]] = {
     "simulation": {"integrator": "backward_euler", "dt": 0.01, "duration": 1.0, "frame_rate": 30.0},
-    "solver": {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "block_jacobi"},
+    "solver": {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "multigrid"},
 }
 
 _TOP_KEYS = ("simulation", "solver", "cloth", "effects")

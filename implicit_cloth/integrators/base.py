@@ -62,12 +62,13 @@ class ImplicitIntegrator(Integrator):
 
     def __init__(self, model: Model, solver: dict[str, Any] | None = None) -> None:
         super().__init__(model, solver)
-        opts = {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "block_jacobi"}
+        opts = {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "multigrid"}
         opts.update(solver or {})
         self.tolerance = float(opts["tolerance"])
         self.max_iterations = int(opts["max_iterations"])
-        self.precond = make_preconditioner(opts["preconditioner"], model.n)
+        self.precond = make_preconditioner(opts["preconditioner"], model)
         self.filter = Filter(model.n, model.pinned)
+        self._mass3 = np.repeat(model.masses, 3)
 
     def _pin_dv(self, v: np.ndarray) -> np.ndarray:
         """Prescribed velocity changes z: pinned vertices reach their pin velocity."""
@@ -88,7 +89,8 @@ class ImplicitIntegrator(Integrator):
         self.precond.setup(self.model.system.diagonal_blocks(), self.filter)
         t1 = time.perf_counter()
         dv, res = filtered_pcg(A, b.reshape(-1), z.reshape(-1), self.filter, self.precond,
-                               self.tolerance, self.max_iterations)
+                               self.tolerance, self.max_iterations, mass=self._mass3,
+                               rule=self.precond.stopping_rule)
         info.t_setup += t1 - t0
         info.t_solve += time.perf_counter() - t1
         info.iterations, info.residual, info.converged = res.iterations, res.residual, res.converged

@@ -1,0 +1,134 @@
+"""Every solver path against a direct sparse solve: the tolerance is the true relative error of dv."""
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg as spla
+import trimesh
+
+import implicit_cloth as ic
+from implicit_cloth import cloth
+from implicit_cloth.solvers import Filter, filtered_pcg, make_preconditioner
+from implicit_cloth.solvers.multigrid import Multigrid, grid_prolongations
+
+H = 1 / 60
+
+
+def _scene(res=(24, 24), k=1e4, mesh=None):
+    c = {"mass": 0.1, "pins": [0, 5] if mesh else ["top_left", "top_right"],
+         "springs": {"structural": {"stiffness": k, "damping": 0.1},
+                     "shear": {"stiffness": k, "damping": 0.1},
+                     "bend": {"stiffness": k / 100, "damping": 0.01}}}
+    if mesh:
+        c["mesh"] = mesh
+        del c["springs"]["shear"]
+    else:
+        c.update(size=[1.0, 1.0], resolution=list(res), plane="xy")
+    return {"cloth": c, "effects": {"gravity": [0, 0, -9.81], "drag": 0.1}}
+
+
+def _mesh_file(tmp_path):
+    g = cloth.grid((1.0, 1.0), (20, 20), plane="xy")
+    rng = np.random.default_rng(5)
+    pos = g.positions + 0.2 / 19 * rng.uniform(-1, 1, g.positions.shape) * [1, 1, 0]   # irregular triangles
+    path = tmp_path / "cloth.obj"
+    trimesh.Trimesh(pos, g.faces, process=False).export(path)
+    return str(path)
+
+
+def _system(sim, steps=8):
+    """A mid-swing system A dv = b with its exact constrained solution (direct solve on free coordinates)."""
+    sim.step(steps)
+    m = sim.model
+    x, v = sim.positions, sim.velocities
+    A, f0, kv = m.linearize(x, v, sim.time, H * H, H, w=v)
+    A = A.copy()
+    b = (H * (f0 + H * kv)).ravel()
+    return m, A, b
+
+
+def _direct(A, b, z, filt):
+    """Exact solution with (I-S) dv = (I-S) z, for filters made of fixed vertices and axis-aligned constraints."""
+    S = filt.matrices()
+    zc = z - np.einsum("nij,nj->ni", S, z.reshape(-1, 3)).ravel()
+    free = np.einsum("nii->ni", S).ravel() > 0.5      # diagonal filters only in these tests
+    dv = zc.copy()
+    dv[free] = spla.spsolve(A[free][:, free].tocsc(), (b - A @ zc)[free])
+    return dv
+
+
+@pytest.mark.parametrize("kind", ["grid", "mesh"])
+@pytest.mark.parametrize("preconditioner", ["multigrid", "block_jacobi"])
+@pytest.mark.parametrize("tol", [1e-2, 1e-4])
+def test_solver_matches_direct_solve_within_tolerance(tmp_path, kind, preconditioner, tol):
+    scene = _scene(mesh=_mesh_file(tmp_path) if kind == "mesh" else None)
+    sim = ic.Simulator(scene, dt=H, solver={"preconditioner": preconditioner})
+    m, A, b = _system(sim)
+    rng = np.random.default_rng(0)
+    z = rng.standard_normal(b.shape) * 0.01
+    # pins plus two vertices constrained along coordinate axes (one and two directions)
+    partial = np.array([m.n // 2, m.n // 3])
+    PS = np.stack([np.diag([1.0, 1.0, 0.0]), np.diag([1.0, 0.0, 0.0])])
+    filt = Filter(m.n, m.pinned, partial, PS)
+    pc = make_preconditioner(preconditioner, m)
+    pc.setup(m.system.diagonal_blocks(), filt)
+    dv, res = filtered_pcg(A, b, z, filt, pc, tol=tol, max_iterations=5000,
+                           mass=np.repeat(m.masses, 3), rule=pc.stopping_rule)
+    ref = _direct(A, b, z, filt)
+    assert res.converged
+    assert np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= tol
+    d3, z3 = dv.reshape(-1, 3), z.reshape(-1, 3)
+    assert np.array_equal(d3[m.pinned], z3[m.pinned])               # constrained: exact, not approximate
+    assert d3[partial[0], 2] == z3[partial[0], 2]
+    assert np.array_equal(d3[partial[1], 1:], z3[partial[1], 1:])
+
+
+def test_multigrid_levels_and_galerkin_products():
+    sim = ic.Simulator(_scene(res=(33, 20)), dt=H)
+    m, A, _ = _system(sim, steps=2)
+    mg = make_preconditioner("multigrid", m)
+    assert isinstance(mg, Multigrid) and mg.n_levels >= 3
+    mg.setup(None, Filter(m.n, np.zeros(0, dtype=int)))
+    for lvl, (Af, Ac) in zip(mg.levels, zip(mg._A[:-1], mg._A[1:])):
+        ref = (lvl.P3.T @ Af @ lvl.P3).toarray()
+        assert np.allclose(Ac.toarray(), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    # bilinear prolongation reproduces linear fields exactly
+    P = grid_prolongations(33, 20)[0]
+    ii, jj = np.meshgrid(np.arange(33), np.arange(20))
+    coarse = grid_prolongations(33, 20)[0].T @ np.zeros(33 * 20)
+    xc = np.array([i for i in range(0, 33, 2)], dtype=float)
+    yc = np.array(list(range(0, 20, 2)) + [19], dtype=float)
+    XC, YC = np.meshgrid(xc, yc)
+    f = 2.0 * XC.ravel() - 3.0 * YC.ravel() + 1.0
+    assert np.allclose(P @ f, 2.0 * ii.ravel() - 3.0 * jj.ravel() + 1.0)
+    assert coarse.shape == (len(xc) * len(yc),)
+
+
+def test_stale_preconditioner_still_converges():
+    """A preconditioner set up one step earlier is a worse one (hence the per-step refresh), never a wrong answer."""
+    sim = ic.Simulator(_scene(), dt=H)
+    m, A_old, _ = _system(sim, steps=5)
+    filt = Filter(m.n, m.pinned)
+    stale = make_preconditioner("multigrid", m)
+    stale.setup(None, filt)                        # from the step-5 matrix
+    m, A, b = _system(sim, steps=1)                # the shared pattern now holds the step-6 values
+    fresh = make_preconditioner("multigrid", m)
+    fresh.setup(None, filt)
+    assert not np.allclose(A.data, A_old.data)
+    ref = _direct(A, b, np.zeros_like(b), filt)
+    its = {}
+    for name, p in (("stale", stale), ("fresh", fresh)):
+        dv, res = filtered_pcg(A, b, np.zeros_like(b), filt, p, tol=1e-4, max_iterations=3000)
+        assert res.converged, name
+        assert np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= 1e-4, name
+        its[name] = res.iterations
+    assert its["stale"] > its["fresh"]
+
+
+def test_default_trajectory_within_one_percent_of_tight_run():
+    scene = _scene(res=(16, 16))
+    tight = ic.Simulator(scene, dt=H, solver={"tolerance": 1e-8}).run(duration=1.0)
+    default = ic.Simulator(scene, dt=H).run(duration=1.0)
+    assert default.report["solver"]["tolerance"] == ic.Scene.from_dict(scene).data["solver"]["tolerance"]
+    displacement = np.linalg.norm(tight.positions - tight.positions[0], axis=2).max()
+    deviation = np.linalg.norm(default.positions - tight.positions, axis=2).max()
+    assert deviation <= 0.01 * displacement
