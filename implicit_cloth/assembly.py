@@ -106,3 +106,19 @@ class SystemMatrix:
     def diagonal_blocks(self) -> np.ndarray:
         """The (N, 3, 3) diagonal blocks (a view-free copy)."""
         return self.blocks[self.diag_index]
+
+
+def accumulate_product(G: sp.csr_array, X: np.ndarray, Y: np.ndarray) -> None:
+    """``Y += G @ X`` for CSR ``G`` and C-contiguous 2-D ``X``, ``Y``, without a temporary.
+
+    Uses scipy's compiled CSR kernel directly (twice as fast at 256² as
+    ``Y += G @ X``, which allocates and page-faults a fresh result every step);
+    falls back to the public product if that kernel is unavailable.
+    """
+    try:
+        from scipy.sparse import _sparsetools
+
+        _sparsetools.csr_matvecs(G.shape[0], G.shape[1], X.shape[1], G.indptr, G.indices, G.data,
+                                 X.reshape(-1), Y.reshape(-1))
+    except (ImportError, AttributeError, TypeError, ValueError):  # pragma: no cover - scipy internals moved
+        Y += G @ X

@@ -186,6 +186,7 @@ class Model:
         for a in range(3):
             blk[d, a, a] = self.masses
         kw = np.zeros_like(x) if w is not None else None
+        f = np.zeros_like(x)
         for e in self.effects:
-            e.linearize(x, v, t, c_x, c_v, w, sysm, kw)
-        return sysm.finalize(), self.forces(x, v, t), kw
+            e.linearize(x, v, t, c_x, c_v, w, sysm, kw, f)
+        return sysm.finalize(), f, kw

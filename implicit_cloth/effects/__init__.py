@@ -11,8 +11,9 @@ terms), so integrators and the assembly know nothing about what the force is:
     (P, 2) vertex pairs whose 3x3 Jacobian blocks couple (for the sparsity pattern).
 ``bind(system)``
     Precompute index maps into a :class:`~implicit_cloth.assembly.SystemMatrix`.
-``linearize(x, v, t, c_x, c_v, w, system, kw)``
-    Add ``-(c_v dF/dv + c_x dF/dx)`` to ``system.blocks`` and ``(dF/dx) w`` to ``kw``.
+``linearize(x, v, t, c_x, c_v, w, system, kw, f)``
+    Add ``-(c_v dF/dv + c_x dF/dx)`` to ``system.blocks``, ``(dF/dx) w`` to ``kw``
+    and the force to ``f`` (so that an implicit step evaluates each effect once).
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ class Effect(Protocol):
     def bind(self, system: Any) -> None: ...
 
     def linearize(self, x: np.ndarray, v: np.ndarray, t: float, c_x: float, c_v: float,
-                  w: np.ndarray | None, system: Any, kw: np.ndarray | None) -> None: ...
+                  w: np.ndarray | None, system: Any, kw: np.ndarray | None, f: np.ndarray) -> None: ...
 
 
 def build_effects(model: Any, effects: dict[str, Any], springs: dict[str, Any]) -> list[Effect]:

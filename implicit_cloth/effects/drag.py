@@ -37,8 +37,9 @@ class Drag:
     def bind(self, system: Any) -> None:
         self._diag = system.diag_index
 
-    def linearize(self, x, v, t, c_x, c_v, w, system, kw) -> None:
+    def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
         # -(c_v dF/dv) = +c_v c A_i I on each diagonal block
+        self.force(x, v, t, f)
         d = c_v * self._cA[:, 0]
         blk = system.blocks
         for a in range(3):

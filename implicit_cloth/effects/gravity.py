@@ -28,8 +28,8 @@ class Gravity:
     def bind(self, system: Any) -> None:
         pass
 
-    def linearize(self, x, v, t, c_x, c_v, w, system, kw) -> None:
-        pass  # constant force: no Jacobian
+    def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
+        f += self._mg  # constant force: no Jacobian
 
 
 def build(model: Any, g) -> Gravity:

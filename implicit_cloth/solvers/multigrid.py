@@ -31,7 +31,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from ..assembly import SystemMatrix
+from ..assembly import SystemMatrix, accumulate_product
 from .blocks import block_diagonal_operator, inv3
 from .pcg import Filter
 
@@ -161,9 +161,9 @@ class Multigrid:
         self._A, self._blocks = [], []
         for l, sm in enumerate(systems):
             if l > 0:
-                lvl = self.levels[l - 1]
-                blocks = (lvl.T @ blocks.reshape(-1, 9)).reshape(-1, 3, 3)
-                sm.blocks[:] = blocks
+                sm.reset()
+                accumulate_product(self.levels[l - 1].T, blocks.reshape(-1, 9), sm.blocks.reshape(-1, 9))
+                blocks = sm.blocks
                 A = sm.finalize()
             elif blocks is fine.blocks:
                 A = fine.csr
