@@ -20,21 +20,11 @@ Writes ``OUT/step_cost.json`` (raw figures, machine, versions) and
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import scipy
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import implicit_cloth as ic  # noqa: E402
-from implicit_cloth.io import save_json, atomic_write  # noqa: E402
+from _common import ROOT, ic, machine, spmv_seconds, write_outputs
 
 
 def measure(scene: ic.Scene, n: int, dt: float, warmup: int, steps: int) -> dict:
@@ -48,20 +38,14 @@ def measure(scene: ic.Scene, n: int, dt: float, warmup: int, steps: int) -> dict
         wall = time.perf_counter() - t0
         s = sim.last_step
         rows.append((wall, s.t_assembly, s.t_setup, s.t_solve, s.iterations, s.residual, s.converged))
-    A = sim.model.system.csr
-    x = np.random.default_rng(0).standard_normal(A.shape[0])
-    spmv = []
-    for _ in range(50):
-        t0 = time.perf_counter()
-        A @ x
-        spmv.append(time.perf_counter() - t0)
+    spmv = spmv_seconds(sim.model.system.csr)
     med = lambda k: statistics.median(r[k] for r in rows)  # noqa: E731
     step_ms = 1e3 * med(0)
     return {
         "resolution": n,
         "vertices": sim.model.n,
         "springs": int(len(sim.model.springs.i)),
-        "matrix_nnz": int(A.nnz),
+        "matrix_nnz": int(sim.model.system.csr.nnz),
         "ms_step": step_ms,
         "ms_assembly": 1e3 * med(1),
         "ms_setup": 1e3 * med(2),
@@ -71,8 +55,8 @@ def measure(scene: ic.Scene, n: int, dt: float, warmup: int, steps: int) -> dict
         "iterations_max": max(r[4] for r in rows),
         "residual_max": max(r[5] for r in rows),
         "unconverged_steps": sum(not r[6] for r in rows),
-        "ms_spmv": 1e3 * statistics.median(spmv),
-        "step_in_spmvs": step_ms / (1e3 * statistics.median(spmv)),
+        "ms_spmv": 1e3 * spmv,
+        "step_in_spmvs": step_ms / (1e3 * spmv),
         "max_strain": float(sim.model.springs.strain(sim.positions)[sim.model.springs.kinds["structural"]].max()),
     }
 
@@ -128,15 +112,11 @@ def main(argv: list[str] | None = None) -> int:
         "warmup": a.warmup,
         "steps": a.steps,
         "quick": a.quick,
-        "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "cpus": __import__("os").cpu_count()},
-        "versions": {"implicit_cloth": ic.__version__, "numpy": np.__version__, "scipy": scipy.__version__},
+        "machine": machine(),
         "rows": rows,
     }
-    out = Path(a.out)
-    save_json(out / "step_cost.json", res)
     md = markdown(res)
-    atomic_write(out / "step_cost.md", lambda f: f.write(md.encode()))
+    write_outputs(Path(a.out), "step_cost", res, md)
     print(md)
     return 0
 

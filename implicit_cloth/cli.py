@@ -86,6 +86,15 @@ def build_parser() -> argparse.ArgumentParser:
                      help="no progress bar (it is only shown when stderr is a terminal)")
     run.add_argument("--debug", action="store_true", help="print tracebacks of errors")
     run.set_defaults(handler=cmd_run)
+
+    bench = sub.add_parser(
+        "bench", help="run a benchmark from benchmarks/ (scaling, step_cost)",
+        description="Run benchmarks/NAME.py of the source tree (an editable install or a clone). "
+                    "Options after NAME go to the benchmark (e.g. --quick, --out DIR, --sizes 32 64).",
+    )
+    bench.add_argument("name", metavar="NAME", help="benchmark name, e.g. scaling or step_cost")
+    bench.add_argument("args", nargs=argparse.REMAINDER, help="options passed to the benchmark")
+    bench.set_defaults(handler=cmd_bench)
     return parser
 
 
@@ -206,6 +215,32 @@ def cmd_run(args: argparse.Namespace) -> int:
     if code == EXIT_DIVERGED:
         print(f"{PROG}: diverged: {_one_line(traj.report.get('reason', ''))}", file=sys.stderr)
     return code
+
+
+def benchmarks_dir() -> Path:
+    """The source tree's benchmarks/ folder (beside the package in a clone or editable install)."""
+    return Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    folder = benchmarks_dir()
+    names = sorted(p.stem for p in folder.glob("*.py") if not p.stem.startswith("_")) if folder.is_dir() else []
+    if not names:
+        _error(f"no benchmarks/ folder beside the package ({folder}); run from a clone with pip install -e .")
+        return EXIT_BAD_INPUT
+    if args.name not in names:
+        _error(f"bench: unknown benchmark {args.name!r} (available: {', '.join(names)})")
+        return EXIT_BAD_INPUT
+    import importlib
+
+    sys.path.insert(0, str(folder))
+    try:
+        module = importlib.import_module(args.name)
+        return int(module.main(list(args.args)) or 0)
+    except SystemExit as exc:  # the benchmark's own argument errors
+        return exc.code if isinstance(exc.code, int) else EXIT_BAD_INPUT
+    finally:
+        sys.path.remove(str(folder))
 
 
 # --------------------------------------------------------------------------- entry point

@@ -18,3 +18,26 @@ def test_step_cost_quick(tmp_path):
         assert r["ms_step"] > 0 and r["iterations_median"] >= 1 and r["step_in_spmvs"] > 0
     md = (tmp_path / "step_cost.md").read_text()
     assert md.count("\n| 8² |") + md.count("\n| 16² |") == 2
+
+
+def test_scaling_quick_via_cli(tmp_path):
+    from implicit_cloth.cli import main
+
+    assert main(["bench", "scaling", "--quick", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "scaling.json").read_text())
+    assert res["benchmark"] == "scaling" and res["quick"] is True
+    assert {r["preconditioner"] for r in res["rows"]} == {"multigrid", "block_jacobi"}
+    for r in res["rows"]:
+        assert r["ms_step"] > 0 and r["step_in_spmvs"] > 0
+        assert r["true_error_max"] is not None and 0 <= r["true_error_max"] < 1
+    assert set(res["exponents"]) == {"multigrid@10000", "multigrid@1000", "block_jacobi@10000", "block_jacobi@1000"}
+    assert (tmp_path / "scaling.md").read_text().count("### k =") == 4
+    png = (tmp_path / "scaling.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+
+
+def test_bench_unknown_name_exits_2(capsys):
+    from implicit_cloth.cli import main
+
+    assert main(["bench", "nonsense"]) == 2
+    assert "unknown benchmark 'nonsense'" in capsys.readouterr().err

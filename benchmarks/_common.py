@@ -1,0 +1,67 @@
+"""Helpers shared by the benchmark scripts: machine description and atomic output."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+import numpy as np
+import scipy
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import implicit_cloth as ic  # noqa: E402
+from implicit_cloth.io import atomic_write, save_json  # noqa: E402
+
+
+def machine() -> dict:
+    """Platform, CPU count and library versions, stored with every result."""
+    return {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "cpus": os.cpu_count(),
+        "versions": {"implicit_cloth": ic.__version__, "numpy": np.__version__, "scipy": scipy.__version__},
+    }
+
+
+def write_outputs(out: Path, name: str, result: dict, markdown: str) -> None:
+    """Write ``OUT/NAME.json`` and ``OUT/NAME.md`` atomically."""
+    out = Path(out)
+    save_json(out / f"{name}.json", result)
+    atomic_write(out / f"{name}.md", lambda f: f.write(markdown.encode("utf-8")))
+
+
+def hanging_stiff(n: int, k: float = 1e4, preconditioner: str = "multigrid", tolerance: float | None = None) -> dict:
+    """The "hanging stiff cloth" of the performance issue: 1 m x 1 m, 0.1 kg, flat at rest, top corners pinned."""
+    solver = {"preconditioner": preconditioner, "max_iterations": 20000}
+    if tolerance is not None:
+        solver["tolerance"] = tolerance
+    return {
+        "simulation": {"integrator": "backward_euler", "dt": 1 / 60},
+        "solver": solver,
+        "cloth": {"size": [1.0, 1.0], "resolution": [n, n], "mass": 0.1, "plane": "xy",
+                  "pins": ["top_left", "top_right"],
+                  "springs": {"structural": {"stiffness": k, "damping": 0.1},
+                              "shear": {"stiffness": k, "damping": 0.1},
+                              "bend": {"stiffness": k / 100, "damping": 0.01}}},
+        "effects": {"gravity": [0.0, 0.0, -9.81]},
+    }
+
+
+def spmv_seconds(A, repeats: int = 50) -> float:
+    """Median time of one ``A @ x``, s."""
+    import statistics
+    import time
+
+    x = np.random.default_rng(0).standard_normal(A.shape[0])
+    t = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        A @ x
+        t.append(time.perf_counter() - t0)
+    return statistics.median(t)

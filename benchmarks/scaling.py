@@ -1,0 +1,251 @@
+"""How the implicit step's cost grows with resolution, at a known accuracy.
+
+Scene: the "hanging stiff cloth" (1 m x 1 m, 0.1 kg, flat at rest, top corners
+pinned, gravity; structural and shear k, bend k/100; backward Euler, dt = 1/60 s)
+at k = 1e4 N/m and the softer k = 1e3 N/m.
+
+For every size and preconditioner the cloth is first run ``--warmup`` steps
+(multigrid, tolerance 1e-8, the same state for every preconditioner), then
+``--steps`` steps are timed one by one (medians reported). Per step: ms split
+into assembly / preconditioner setup / solve / collision / rest, CG iterations,
+and the ratio of the step to one SpMV of the same matrix (timed in the same
+run). On the first timed step (the same state for every preconditioner) and,
+up to ``--direct-max``, on more of them, the system is also solved directly
+(SuperLU on the free coordinates) and the **true relative error of dv** is
+measured. The growth exponent of ms/step against vertex count is fitted by
+least squares. Finally the default settings' trajectory over the window is
+compared with a run at tolerance 1e-8 (largest vertex deviation relative to the
+cloth's largest displacement).
+
+Usage::
+
+    python benchmarks/scaling.py                         # 32..256, both k, both preconditioners
+    python benchmarks/scaling.py --sizes 32 64 --out /tmp/res
+    python benchmarks/scaling.py --quick                 # CI smoke test (seconds)
+
+Writes ``OUT/scaling.json``, ``OUT/scaling.md`` and ``OUT/scaling.png``. Never asserts a time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse.linalg as spla
+
+from _common import ROOT, hanging_stiff, ic, machine, spmv_seconds, write_outputs
+
+H = 1 / 60
+
+
+def _direct_dv(sim: ic.Simulator) -> np.ndarray:
+    """The exact dv of the coming backward-Euler step (pins prescribed), by a sparse direct solve."""
+    m = sim.model
+    x, v = sim.positions, sim.velocities
+    A, f0, kv = m.linearize(x, v, sim.time, H * H, H, w=v)
+    b = (H * (f0 + H * kv)).ravel()
+    z = np.zeros_like(v)
+    z[m.pinned] = m.pin_velocity - v[m.pinned]
+    z = z.ravel()
+    free = np.repeat(m.free, 3)
+    dv = z.copy()
+    dv[free] = spla.spsolve(A[free][:, free].tocsc(), (b - A @ z)[free], permc_spec="COLAMD")
+    return dv
+
+
+def time_steps(n: int, k: float, preconditioner: str, state: ic.simulator.State, steps: int,
+               error_samples: int, ref0: np.ndarray) -> dict:
+    """Time ``steps`` steps from ``state``; true error on the first step (against ``ref0``) and
+    ``error_samples - 1`` more evenly spread ones (direct solves of their own)."""
+    sim = ic.Simulator(hanging_stiff(n, k, preconditioner), dt=H)
+    sim.positions, sim.velocities = state.x, state.v
+    sim.state.t = state.t
+    extra = np.linspace(0, steps - 1, error_samples).round().astype(int)[1:] if error_samples > 1 else []
+    sample_at = set(int(s) for s in extra if s > 0)
+    rows, errors = [], []
+    for s in range(steps):
+        ref = ref0 if s == 0 else (_direct_dv(sim) if s in sample_at else None)
+        v0 = sim.velocities.copy()
+        t0 = time.perf_counter()
+        sim.step(1)
+        wall = time.perf_counter() - t0
+        st = sim.last_step
+        rows.append((wall, st.t_assembly, st.t_setup, st.t_solve, st.iterations, st.converged))
+        if ref is not None:
+            dv = (sim.velocities - v0).ravel()
+            errors.append(float(np.linalg.norm(dv - ref) / np.linalg.norm(ref)))
+    spmv = spmv_seconds(sim.model.system.csr)
+    med = lambda i: statistics.median(r[i] for r in rows)  # noqa: E731
+    ms = 1e3 * med(0)
+    return {
+        "resolution": n, "vertices": sim.model.n, "k": k, "preconditioner": preconditioner,
+        "tolerance": sim.integrator.tolerance,
+        "ms_step": ms, "ms_assembly": 1e3 * med(1), "ms_setup": 1e3 * med(2), "ms_solve": 1e3 * med(3),
+        "ms_collision": 0.0,   # no obstacles in this scene
+        "ms_rest": ms - 1e3 * (med(1) + med(2) + med(3)),
+        "iterations_median": med(4), "iterations_max": max(r[4] for r in rows),
+        "unconverged_steps": sum(not r[5] for r in rows),
+        "ms_spmv": 1e3 * spmv, "step_in_spmvs": ms / (1e3 * spmv),
+        "true_error_max": max(errors) if errors else None,
+        "true_error_median": statistics.median(errors) if errors else None,
+        "error_samples": len(errors),
+    }
+
+
+def warm_state(n: int, k: float, warmup: int) -> ic.simulator.State:
+    sim = ic.Simulator(hanging_stiff(n, k, "multigrid", 1e-8), dt=H)
+    sim.step(warmup)
+    return sim.state.copy()
+
+
+def trajectory_error(n: int, k: float, steps: int) -> dict:
+    """Default settings against tolerance 1e-8 over ``steps`` steps from rest."""
+    runs = {}
+    for name, tol in (("default", None), ("tight", 1e-8)):
+        sim = ic.Simulator(hanging_stiff(n, k, "multigrid", tol), dt=H)
+        traj = sim.run(duration=steps * H, frame_rate=60)
+        runs[name] = traj.positions
+    disp = float(np.linalg.norm(runs["tight"] - runs["tight"][0], axis=2).max())
+    dev = float(np.linalg.norm(runs["default"] - runs["tight"], axis=2).max())
+    return {"resolution": n, "k": k, "steps": steps, "max_displacement_m": disp, "max_deviation_m": dev,
+            "relative": dev / disp if disp > 0 else 0.0}
+
+
+def fit_exponent(rows: list[dict]) -> float | None:
+    if len(rows) < 2:
+        return None
+    N = np.array([r["vertices"] for r in rows], dtype=float)
+    t = np.array([r["ms_step"] for r in rows])
+    return float(np.polyfit(np.log(N), np.log(t), 1)[0])
+
+
+def markdown(res: dict) -> str:
+    out = [f"Hanging stiff cloth, backward Euler dt = 1/60 s; steps {res['warmup']}-{res['warmup'] + res['steps']} "
+           f"timed (median); {res['machine']['cpus']} cores, one BLAS thread. Default solver settings: "
+           f"preconditioner {res['default_solver']['preconditioner']}, tolerance "
+           f"{res['default_solver']['tolerance']:g}.", ""]
+    for k in res["ks"]:
+        for pc in res["preconditioners"]:
+            rows = [r for r in res["rows"] if r["k"] == k and r["preconditioner"] == pc]
+            if not rows:
+                continue
+            exp = res["exponents"].get(f"{pc}@{k:g}")
+            out += [f"### k = {k:g} N/m, {pc}" + (f" (ms/step ~ N^{exp:.2f})" if exp is not None else ""), "",
+                    "| grid | vertices | ms/step | assembly | setup | solve | collision | rest | CG its (med/max) "
+                    "| true error of dv (max) | step / SpMV |",
+                    "|---|---|---|---|---|---|---|---|---|---|---|"]
+            for r in rows:
+                err = f"{r['true_error_max']:.1e}" if r["true_error_max"] is not None else "-"
+                out.append(f"| {r['resolution']}² | {r['vertices']} | {r['ms_step']:.1f} | {r['ms_assembly']:.1f} | "
+                           f"{r['ms_setup']:.1f} | {r['ms_solve']:.1f} | {r['ms_collision']:.1f} | "
+                           f"{r['ms_rest']:.1f} | {r['iterations_median']:.0f}/{r['iterations_max']} | {err} | "
+                           f"{r['step_in_spmvs']:.0f} |")
+            out.append("")
+    if res["trajectory"]:
+        out += ["### Default settings against tolerance 1e-8 (trajectory)", "",
+                "| grid | k | steps | largest displacement (m) | largest deviation (m) | relative |", "|---|---|---|---|---|---|"]
+        for t in res["trajectory"]:
+            out.append(f"| {t['resolution']}² | {t['k']:g} | {t['steps']} | {t['max_displacement_m']:.4f} | "
+                       f"{t['max_deviation_m']:.2e} | {t['relative']:.2e} |")
+        out.append("")
+    return "\n".join(out)
+
+
+def plot(res: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for k in res["ks"]:
+        for pc, style in zip(res["preconditioners"], ("o-", "s--")):
+            rows = [r for r in res["rows"] if r["k"] == k and r["preconditioner"] == pc]
+            if not rows:
+                continue
+            exp = res["exponents"].get(f"{pc}@{k:g}")
+            N = [r["vertices"] for r in rows]
+            ax.loglog(N, [r["ms_step"] for r in rows], style,
+                      label=f"{pc}, k={k:g} N/m" + (f" (N^{exp:.2f})" if exp is not None else ""))
+    rows = [r for r in res["rows"] if r["k"] == res["ks"][0] and r["preconditioner"] == res["preconditioners"][0]]
+    ax.loglog([r["vertices"] for r in rows], [r["ms_spmv"] for r in rows], "k:", label="one SpMV (floor)")
+    ax.set_xlabel("vertices N")
+    ax.set_ylabel("ms per backward-Euler step (median)")
+    ax.set_title("Implicit step cost vs resolution (hanging stiff cloth, dt = 1/60 s)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    from implicit_cloth.io import atomic_write
+
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=120))
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128, 256])
+    p.add_argument("--ks", type=float, nargs="+", default=[1e4, 1e3])
+    p.add_argument("--preconditioners", nargs="+", default=["multigrid", "block_jacobi"],
+                   choices=["multigrid", "block_jacobi"])
+    p.add_argument("--warmup", type=int, default=20)
+    p.add_argument("--steps", type=int, default=40)
+    p.add_argument("--slow-steps", type=int, default=5,
+                   help="timed steps for block_jacobi at sizes >= 128 (hundreds of iterations each)")
+    p.add_argument("--error-samples", type=int, default=3,
+                   help="steps per run whose dv is checked against a direct solve (the first always)")
+    p.add_argument("--direct-max", type=int, default=64,
+                   help="above this size only the first timed step is checked (direct solves are slow)")
+    p.add_argument("--trajectory-sizes", type=int, nargs="*", default=[32, 64, 128])
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--quick", action="store_true", help="tiny sizes and few steps (CI smoke test)")
+    a = p.parse_args(argv)
+    if a.quick:
+        a.sizes, a.warmup, a.steps, a.slow_steps, a.error_samples = [8, 16], 2, 3, 3, 1
+        a.trajectory_sizes = [8]
+    default_solver = ic.Scene.from_dict({"cloth": {"mass": 1.0}}).data["solver"]
+    rows = []
+    for k in a.ks:
+        for n in a.sizes:
+            state = warm_state(n, k, a.warmup)
+            sim = ic.Simulator(hanging_stiff(n, k), dt=H)
+            sim.positions, sim.velocities = state.x, state.v
+            sim.state.t = state.t
+            ref0 = _direct_dv(sim)  # the first timed step's exact dv, shared by all preconditioners
+            samples = a.error_samples if n <= a.direct_max else 1
+            for pc in a.preconditioners:
+                steps = a.slow_steps if (pc == "block_jacobi" and n >= 128) else a.steps
+                r = time_steps(n, k, pc, state, steps, samples, ref0)
+                rows.append(r)
+                err = f"{r['true_error_max']:.1e}" if r["true_error_max"] is not None else "-"
+                print(f"k={k:g} {n:4d}² {pc:12s} {r['ms_step']:9.1f} ms/step (asm {r['ms_assembly']:.1f}, setup "
+                      f"{r['ms_setup']:.1f}, solve {r['ms_solve']:.1f})  its {r['iterations_median']:.0f}  "
+                      f"true err {err}  = {r['step_in_spmvs']:.0f} SpMVs", flush=True)
+    exponents = {}
+    for k in a.ks:
+        for pc in a.preconditioners:
+            e = fit_exponent([r for r in rows if r["k"] == k and r["preconditioner"] == pc])
+            if e is not None:
+                exponents[f"{pc}@{k:g}"] = e
+    traj = []
+    for k in a.ks:
+        for n in a.trajectory_sizes:
+            t = trajectory_error(n, k, a.warmup + a.steps)
+            traj.append(t)
+            print(f"trajectory k={k:g} {n}²: deviation {t['relative']:.2e} of the displacement", flush=True)
+    res = {"benchmark": "scaling", "quick": a.quick, "sizes": a.sizes, "ks": a.ks,
+           "preconditioners": a.preconditioners, "warmup": a.warmup, "steps": a.steps,
+           "slow_steps": a.slow_steps, "default_solver": default_solver, "machine": machine(),
+           "rows": rows, "exponents": exponents, "trajectory": traj}
+    md = markdown(res)
+    out = Path(a.out)
+    write_outputs(out, "scaling", res, md)
+    plot(res, out / "scaling.png")
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
