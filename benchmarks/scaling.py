@@ -194,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=40)
     p.add_argument("--slow-steps", type=int, default=5,
                    help="timed steps for block_jacobi at sizes >= 128 (hundreds of iterations each)")
+    p.add_argument("--slow-max", type=int, default=128,
+                   help="largest size timed with block_jacobi (thousands of iterations a step above)")
     p.add_argument("--error-samples", type=int, default=3,
                    help="steps per run whose dv is checked against a direct solve (the first always)")
     p.add_argument("--direct-max", type=int, default=64,
@@ -216,6 +218,9 @@ def main(argv: list[str] | None = None) -> int:
             ref0 = _direct_dv(sim)  # the first timed step's exact dv, shared by all preconditioners
             samples = a.error_samples if n <= a.direct_max else 1
             for pc in a.preconditioners:
+                if pc == "block_jacobi" and n > a.slow_max:
+                    print(f"k={k:g} {n:4d}² {pc:12s} skipped (--slow-max {a.slow_max})", flush=True)
+                    continue
                 steps = a.slow_steps if (pc == "block_jacobi" and n >= 128) else a.steps
                 r = time_steps(n, k, pc, state, steps, samples, ref0)
                 rows.append(r)
