@@ -97,6 +97,9 @@ class Springs:
     def spring_forces(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Force of each spring on its first vertex i, (S, 3) N."""
         d, l, u, ok, inv = self._frame(x)
+        return self._forces_from_frame(d, u, v)
+
+    def _forces_from_frame(self, d: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         # k (l - L0) u, written k (d - L0 u) so that it stays k d when u = 0
         f = self.k[:, None] * (d - self.L0[:, None] * u)
         if np.any(self.kd):
@@ -118,13 +121,12 @@ class Springs:
         self._G = system.pair_scatter(self.pairs())
         self._X = np.empty((len(self.i), 3, 3))   # per-spring blocks, reused every step
 
-    def _coefficients(self, x: np.ndarray, exact: bool = False):
-        """K = k [a I + (1 - a) u u^T] per spring: returns (u, a) with a = max(0, 1 - L0/l)."""
-        d, l, u, ok, inv = self._frame(x)
+    def _transverse(self, ok: np.ndarray, inv: np.ndarray, exact: bool = False) -> np.ndarray:
+        """``a`` of ``K = k [a I + (1 - a) u u^T]``: ``1 - L0/l``, clamped at 0 unless ``exact``."""
         a = np.where(ok, 1.0 - self.L0 * inv, np.where(self.L0 > 0, 0.0, 1.0))
         if not exact:
             np.maximum(a, 0.0, out=a)
-        return u, a
+        return a
 
     def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
         """Add ``-(c_v dF/dv + c_x dF/dx)`` to the system blocks, ``(dF/dx) w`` to ``kw`` and F to ``f``.
@@ -135,13 +137,8 @@ class Springs:
         sparse product giving contiguous (n_blocks, 9) values, added in one pass).
         """
         d, l, u, ok, inv = self._frame(x)
-        a = np.where(ok, 1.0 - self.L0 * inv, np.where(self.L0 > 0, 0.0, 1.0))
-        # force from the same frame: k (d - L0 u) + kd ((v_j - v_i) . u) u
-        fs = self.k[:, None] * (d - self.L0[:, None] * u)
-        if np.any(self.kd):
-            dv = v[self.j] - v[self.i]
-            fs += (self.kd * np.einsum("ij,ij->i", dv, u))[:, None] * u
-        np.maximum(a, 0.0, out=a)
+        a = self._transverse(ok, inv)
+        fs = self._forces_from_frame(d, u, v)       # the force, from the same frame
         alpha = c_x * self.k * a
         beta = c_x * self.k * (1.0 - a) + c_v * self.kd
         X = self._X
@@ -162,7 +159,8 @@ class Springs:
         With ``exact=False`` (what the solver uses) the transverse term of
         compressed springs is clamped; ``exact=True`` gives the true derivative.
         """
-        u, a = self._coefficients(x, exact=exact)
+        d, l, u, ok, inv = self._frame(x)
+        a = self._transverse(ok, inv, exact)
         uu = u[:, :, None] * u[:, None, :]
         eye = np.eye(3)[None]
         K = self.k[:, None, None] * (a[:, None, None] * eye + (1.0 - a)[:, None, None] * uu)
