@@ -216,3 +216,15 @@ def test_subprocess_run_exits_0(tmp_path, how):
     assert "status       ok" in proc.stdout
     assert proc.stderr == ""          # stderr is not a terminal: no progress bar
     assert json.loads((out / "report.json").read_text())["status"] == "ok"
+
+
+def test_outputs_get_a_normal_file_mode(tmp_path):
+    import os
+    import stat
+
+    from implicit_cloth.io import save_json
+
+    path = save_json(tmp_path / "r.json", {"a": 1})
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~mask
