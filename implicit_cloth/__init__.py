@@ -13,7 +13,7 @@ Public API::
 All quantities are SI: metres, seconds, kilograms, newtons.
 """
 
-from .errors import DivergenceError, SceneError, SolverWarning
+from .errors import DivergenceError, MeshWarning, SceneError, SolverWarning
 from .materials import MATERIALS, Material
 from .scene import INTEGRATORS, Scene, load_scene
 from .simulator import Simulator, Trajectory
@@ -25,6 +25,7 @@ __all__ = [
     "MATERIALS",
     "DivergenceError",
     "Material",
+    "MeshWarning",
     "Scene",
     "SceneError",
     "Simulator",

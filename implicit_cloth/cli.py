@@ -15,7 +15,10 @@ Exit codes
 0
     The run finished (``status`` ``"ok"``).
 1
-    The results could not be written (an operating-system error after the run).
+    The results could not be written (an operating-system error after the run,
+    e.g. a full disk). The two files are written together: a failure leaves
+    a previous ``trajectory.npz`` and ``report.json`` as they were and no
+    temporary file behind.
 2
     Bad input: an invalid or unreadable scene, an invalid override
     (``--dt -1``, ``--integrator nonsense``), an unusable ``--out`` or a usage
@@ -33,7 +36,9 @@ slot in beside ``run``.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import tempfile
 import traceback
 import warnings
 from pathlib import Path
@@ -111,12 +116,35 @@ def _one_line(text: str) -> str:
 
 
 def _write_outputs(out: Path, traj: Trajectory, scene_data: dict[str, Any]) -> tuple[Path, Path]:
-    """Write DIR/trajectory.npz and DIR/report.json (both atomically)."""
-    npz = traj.save(out / "trajectory.npz")
+    """Write DIR/trajectory.npz and DIR/report.json as a pair.
+
+    Both are first written completely to temporary files in DIR (each
+    atomically, see :mod:`implicit_cloth.io`), then renamed into place, so a
+    failure while writing either (a full disk) leaves the previous pair as it
+    was, never a new trajectory beside an old report, and removes the
+    temporary files.
+    """
     report = dict(traj.report)
     report["scene"] = scene_data
-    js = save_json(out / "report.json", report)
-    return npz, js
+    targets = (out / "trajectory.npz", out / "report.json")
+    writers = (traj.save, lambda p: save_json(p, report))
+    staged: list[Path] = []
+    try:
+        for target, write in zip(targets, writers):
+            fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".new", dir=out)
+            os.close(fd)
+            staged.append(Path(tmp))
+            write(staged[-1])
+        for tmp, target in zip(staged, targets):
+            os.replace(tmp, target)
+    except BaseException:
+        for tmp in staged:
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+        raise
+    return targets
 
 
 def _fmt_e(x: float) -> str:
@@ -168,12 +196,17 @@ def cmd_run(args: argparse.Namespace) -> int:
         if val is not None:
             overrides[key] = val
     try:
-        scene = load_scene(scene_path)
-        # Overrides go through Simulator's keywords, i.e. through scene validation.
-        sim = Simulator(scene, **overrides)
+        with warnings.catch_warnings(record=True) as loading:   # e.g. MeshWarning: one line each
+            warnings.simplefilter("default")
+            scene = load_scene(scene_path)
+            # Overrides go through Simulator's keywords, i.e. through scene validation.
+            sim = Simulator(scene, **overrides)
     except SceneError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT
+    finally:
+        for w in loading:
+            print(f"{PROG}: warning: {_one_line(w.message)}", file=sys.stderr)
 
     if out.exists() and not out.is_dir():
         _error(f"--out: {str(out)!r} exists and is not a directory")

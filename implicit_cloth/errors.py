@@ -34,3 +34,15 @@ class DivergenceError(RuntimeError):
 
 class SolverWarning(RuntimeWarning):
     """A linear solve stopped at its iteration limit before reaching its tolerance."""
+
+
+class MeshWarning(UserWarning):
+    """A mesh file has defects the simulation works around.
+
+    Zero-area triangles (they add no mass), duplicate vertices (vertices are not
+    merged, so the pieces are not joined there) and non-manifold edges (they get
+    no bend spring). The message starts with ``cloth.mesh:``, names the first
+    offending item and the file; the run goes on. A defect that cannot be worked
+    around (a vertex that would have no mass, a face index out of range, a
+    non-finite coordinate) is a :class:`SceneError` instead.
+    """

@@ -21,6 +21,7 @@ from . import cloth as _cloth
 from .assembly import SystemMatrix
 from .effects import Effect, build_effects
 from .errors import SceneError
+from .scene import _fmt
 
 
 @dataclass
@@ -66,6 +67,9 @@ class Model:
         else:
             geo = _cloth.from_mesh(c["mesh"], c["scale"], c["translation"], kinds)
         self.geometry = geo
+        if not np.isfinite(geo.positions).all():   # a mesh's coordinates are checked by from_mesh
+            raise SceneError(f"cloth.center: vertex positions are not finite (center + size / 2 overflows), "
+                             f"got {c.get('center')}")
         self.n = geo.n_vertices
         self.faces = geo.faces
         self.rest_positions = geo.positions.copy()
@@ -75,12 +79,14 @@ class Model:
             total_mass = c["mass"] if "mass" in c else c["density"] * total_area
             self.masses = np.full(self.n, total_mass / self.n)
         else:
-            if np.any(self.areas <= 0):
+            if np.any(self.areas <= 0):   # from_mesh's checks catch this first; kept as a safeguard
                 bad = np.flatnonzero(self.areas <= 0)
                 raise SceneError(
-                    f"cloth.mesh: {len(bad)} vertices belong to no triangle of positive area "
-                    f"(first: {bad[0]}); they would have no mass")
+                    f"cloth.mesh: vertex {bad[0]} has no area (it is in no triangle of positive area), so it "
+                    f"would have no mass ({len(bad)} such vertices: {', '.join(map(str, bad[:5]))}"
+                    f"{', ...' if len(bad) > 5 else ''}), got {c['mesh']!r}")
             self.masses = (c["mass"] * self.areas / total_area) if "mass" in c else c["density"] * self.areas
+        self._check_masses(c)
         self.total_mass = float(self.masses.sum())
         self._init_pins(c["pins"])
         self.effects: list[Effect] = build_effects(self, scene.data["effects"], c["springs"])
@@ -90,6 +96,22 @@ class Model:
         self.inv_masses = 1.0 / self.masses
         self.free = np.ones(self.n, dtype=bool)
         self.free[self.pinned] = False
+
+    def _check_masses(self, c: dict[str, Any]) -> None:
+        """Every vertex mass must be a positive finite number with a finite inverse (no underflow or overflow)."""
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+            ok = np.isfinite(self.masses) & (self.masses > 0) & np.isfinite(1.0 / self.masses)
+        if not ok.all():
+            v = int(np.flatnonzero(~ok)[0])
+            key = "mass" if "mass" in c else "density"
+            if key == "mass":
+                how = f"total {c['mass']:g} kg over {self.n} vertices"
+            elif c["kind"] == "grid":
+                how = f"{c['density']:g} kg/m^2 x area {float(self.areas.sum()):.3g} m^2 over {self.n} vertices"
+            else:
+                how = f"{c['density']:g} kg/m^2 x its area {self.areas[v]:.3g} m^2"
+            raise SceneError(f"cloth.{key}: vertex {v} would get a mass of {self.masses[v]:.3g} kg ({how}), "
+                             f"which is not a positive number with a finite inverse, got {c[key]}")
 
     # ------------------------------------------------------------------ pins
     def _init_pins(self, groups: list[dict[str, Any]]) -> None:
@@ -101,10 +123,10 @@ class Model:
                 where = g["paths"][m]
                 p = self.geometry.corner(v, where) if isinstance(v, str) else int(v)
                 if p >= self.n:
-                    raise SceneError(f"{where}: vertex index out of range (the cloth has {self.n} vertices), got {v}")
+                    raise SceneError(f"{where}: vertex index out of range (the cloth has {self.n} vertices), got {_fmt(v)}")
                 if p in seen:
                     if g["velocity"] != vel[idx.index(p)]:
-                        raise SceneError(f"{where}: vertex {p} is pinned twice with different velocities, got {v}")
+                        raise SceneError(f"{where}: vertex {p} is pinned twice with different velocities, got {_fmt(v)}")
                     continue
                 seen[p] = where
                 idx.append(p)

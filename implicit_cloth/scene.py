@@ -7,6 +7,13 @@ with the bad value, e.g. ``cloth.springs.shear.stiffness: must be a finite
 number >= 0, got -5``; an unknown key is an error with a "did you mean"
 suggestion. The validated scene is stored in a normalised form with every
 default filled in (see :attr:`Scene.data`).
+
+Numbers may be Python or NumPy scalars (``bool`` is never a number) and lists
+may be lists, tuples or 1-D NumPy arrays; the normalised scene holds plain
+floats, ints and lists. Besides each key's own range, a few limits keep a
+valid scene runnable: at most :data:`MAX_VERTICES` grid vertices,
+:data:`MAX_STEPS` steps per run, :data:`MAX_FRAMES` kept frames and
+:data:`MAX_SOLVER_ITERATIONS` CG iterations per step.
 """
 
 from __future__ import annotations
@@ -14,9 +21,12 @@ from __future__ import annotations
 import copy
 import difflib
 import math
+import numbers
 import os
 from pathlib import Path
 from typing import Any, Iterable, Mapping
+
+import numpy as np
 
 from .errors import SceneError
 from .materials import MATERIALS
@@ -55,10 +65,34 @@ _CLOTH_KEYS = (
 )
 _EFFECT_KEYS = ("gravity", "drag", "wind")
 
+#: Largest grid (nx * ny vertices, 4096 x 4096): beyond it the arrays alone need tens of GB.
+MAX_VERTICES = 4096 * 4096
+#: Most steps a run may take (round(duration / dt)).
+MAX_STEPS = 10**9
+#: Most frames a run may keep (duration x min(frame_rate, 1 / dt) + 1).
+MAX_FRAMES = 10**7
+#: Largest solver.max_iterations (the solver keeps two arrays of this length per solve).
+MAX_SOLVER_ITERATIONS = 10**6
+
 
 # --------------------------------------------------------------------------- checks
 def _fmt(value: Any) -> str:
-    return repr(value) if isinstance(value, str) else str(value)
+    """The value as it was given (repr, so that '1.0' and 1.0 differ), shortened to one readable line."""
+    try:
+        text = " ".join(repr(value).split())
+    except ValueError:   # an int beyond Python's str conversion limit (4300 digits)
+        return f"an integer of about {int(value).bit_length() * 0.30103:.0f} digits"
+    return text if len(text) <= 80 else text[:60] + " ... " + text[-15:]
+
+
+def _is_number(value: Any) -> bool:
+    """A real number (Python or NumPy scalar), not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_list(value: Any) -> bool:
+    """A list, a tuple or a 1-D NumPy array."""
+    return isinstance(value, (list, tuple)) or (isinstance(value, np.ndarray) and value.ndim == 1)
 
 
 def _fail(path: str, what: str, value: Any) -> SceneError:
@@ -80,11 +114,17 @@ def _check_keys(path: str, table: Any, allowed: Iterable[str]) -> Mapping[str, A
 
 def _number(path: str, value: Any, *, lo: float | None = None, lo_open: bool = False,
             hi: float | None = None) -> float:
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = _is_number(value)
+    if ok:
+        try:
+            x = float(value)
+        except (OverflowError, ValueError):   # an int beyond the float range
+            x = math.inf
+        ok = math.isfinite(x)
     if ok and lo is not None:
-        ok = value > lo if lo_open else value >= lo
+        ok = x > lo if lo_open else x >= lo
     if ok and hi is not None:
-        ok = value <= hi
+        ok = x <= hi
     if not ok:
         rng = ""
         if lo is not None:
@@ -92,17 +132,19 @@ def _number(path: str, value: Any, *, lo: float | None = None, lo_open: bool = F
         if hi is not None:
             rng += f"{' and' if lo is not None else ''} <= {hi:g}"
         raise _fail(path, f"must be a finite number{rng}", value)
-    return float(value)
+    return x
 
 
-def _integer(path: str, value: Any, *, lo: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < lo:
-        raise _fail(path, f"must be an integer >= {lo}", value)
+def _integer(path: str, value: Any, *, lo: int, hi: int | None = None) -> int:
+    ok = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+    ok = ok and int(value) >= lo and (hi is None or int(value) <= hi)
+    if not ok:
+        raise _fail(path, f"must be an integer >= {lo}" + (f" and <= {hi}" if hi is not None else ""), value)
     return int(value)
 
 
 def _vector(path: str, value: Any, n: int, *, positive: bool = False) -> list[float]:
-    if not isinstance(value, (list, tuple)) or len(value) != n:
+    if not _is_list(value) or len(value) != n:
         raise _fail(path, f"must be a list of {n} numbers", value)
     return [_number(f"{path}[{k}]", x, lo=0.0 if positive else None, lo_open=positive)
             for k, x in enumerate(value)]
@@ -131,7 +173,28 @@ def _simulation(d: Mapping[str, Any]) -> dict[str, Any]:
         out["frame_rate"] = _number("simulation.frame_rate", d["frame_rate"], lo=0.0, lo_open=True)
     if "divergence_factor" in d:
         out["divergence_factor"] = _number("simulation.divergence_factor", d["divergence_factor"], lo=1.0)
+    _run_length(out)
     return out
+
+
+def _run_length(sim: Mapping[str, Any]) -> None:
+    """Refuse a run whose step or frame count is beyond what can be counted or stored.
+
+    A step count beyond the limit names whichever of dt and duration is further
+    from its default in the direction that makes the run long; a frame count
+    beyond it names frame_rate.
+    """
+    dt, duration, rate = sim["dt"], sim["duration"], sim["frame_rate"]
+    base = DEFAULTS["simulation"]
+    steps = duration / dt                                   # may be inf (5e-324 s steps)
+    if not steps <= MAX_STEPS:
+        key = "duration" if duration / base["duration"] >= base["dt"] / dt else "dt"
+        raise _fail(f"simulation.{key}", f"the run would take {steps:.3g} steps (duration / dt = "
+                    f"{duration:g} s / {dt:g} s), more than the limit of {MAX_STEPS:.0e}", sim[key])
+    frames = duration * min(rate, 1.0 / dt)
+    if not frames <= MAX_FRAMES:
+        raise _fail("simulation.frame_rate", f"the run would keep {frames:.3g} frames (duration x "
+                    f"min(frame_rate, 1 / dt)), more than the limit of {MAX_FRAMES:.0e}", rate)
 
 
 def _solver(d: Mapping[str, Any]) -> dict[str, Any]:
@@ -140,14 +203,15 @@ def _solver(d: Mapping[str, Any]) -> dict[str, Any]:
     if "tolerance" in d:
         out["tolerance"] = _number("solver.tolerance", d["tolerance"], lo=0.0, lo_open=True, hi=1.0)
     if "max_iterations" in d:
-        out["max_iterations"] = _integer("solver.max_iterations", d["max_iterations"], lo=1)
+        out["max_iterations"] = _integer("solver.max_iterations", d["max_iterations"], lo=1,
+                                         hi=MAX_SOLVER_ITERATIONS)
     if "preconditioner" in d:
         out["preconditioner"] = _choice("solver.preconditioner", d["preconditioner"], PRECONDITIONERS)
     return out
 
 
 def _pins(value: Any) -> list[dict[str, Any]]:
-    if not isinstance(value, (list, tuple)):
+    if not _is_list(value):
         raise _fail("cloth.pins", "must be a list of vertex indices, corner names or tables", value)
     groups: list[dict[str, Any]] = []
     loose: list[int | str] = []
@@ -165,7 +229,7 @@ def _pins(value: Any) -> list[dict[str, Any]]:
             if "vertices" not in item:
                 raise SceneError(f"{path}.vertices: missing (a pin table needs its vertices)")
             verts = item["vertices"]
-            if not isinstance(verts, (list, tuple)) or not verts:
+            if not _is_list(verts) or not len(verts):
                 raise _fail(f"{path}.vertices", "must be a non-empty list of vertex indices or corner names", verts)
             paths = [f"{path}.vertices[{m}]" for m in range(len(verts))]
             groups.append({
@@ -193,13 +257,12 @@ def _springs(d: Any, material: str | None) -> dict[str, dict[str, float]]:
         path = f"cloth.springs.{kind}"
         _check_keys(path, spec, ("stiffness", "damping"))
         base = out.get(kind, {})
-        if "stiffness" not in spec and "stiffness" not in base:
+        given = {key: _number(f"{path}.{key}", spec[key], lo=0.0) for key in ("stiffness", "damping") if key in spec}
+        if "stiffness" not in given and "stiffness" not in base:
             raise SceneError(f"{path}.stiffness: missing (no material preset supplies it)")
         out[kind] = {
-            "stiffness": _number(f"{path}.stiffness", spec["stiffness"], lo=0.0) if "stiffness" in spec
-            else base["stiffness"],
-            "damping": _number(f"{path}.damping", spec["damping"], lo=0.0) if "damping" in spec
-            else base.get("damping", 0.0),
+            "stiffness": given.get("stiffness", base.get("stiffness")),
+            "damping": given.get("damping", base.get("damping", 0.0)),
         }
     return out
 
@@ -228,9 +291,12 @@ def _cloth(d: Any, base_dir: Path | None) -> dict[str, Any]:
         out["kind"] = "grid"
         out["size"] = _vector("cloth.size", d.get("size", [1.0, 1.0]), 2, positive=True)
         res = d.get("resolution", [32, 32])
-        if not isinstance(res, (list, tuple)) or len(res) != 2:
+        if not _is_list(res) or len(res) != 2:
             raise _fail("cloth.resolution", "must be a list of 2 integers >= 2", res)
         out["resolution"] = [_integer(f"cloth.resolution[{k}]", r, lo=2) for k, r in enumerate(res)]
+        if out["resolution"][0] * out["resolution"][1] > MAX_VERTICES:
+            raise _fail("cloth.resolution", f"must give at most {MAX_VERTICES} vertices (4096 x 4096), "
+                        f"nx * ny = {out['resolution'][0] * out['resolution'][1]}", res)
         out["center"] = _vector("cloth.center", d.get("center", [0.0, 0.0, 0.0]), 3)
         out["plane"] = _choice("cloth.plane", d.get("plane", "xz"), PLANES)
 
@@ -250,6 +316,8 @@ def _cloth(d: Any, base_dir: Path | None) -> dict[str, Any]:
         raise SceneError("cloth.mass: missing (give cloth.mass in kg, cloth.density in kg/m^2, or a material)")
     out["velocity"] = _vector("cloth.velocity", d.get("velocity", [0.0, 0.0, 0.0]), 3)
     out["pins"] = _pins(d.get("pins", []))
+    if "springs" in d and d["springs"] is None:
+        raise _fail("cloth.springs", "must be a table", None)
     out["springs"] = _springs(d.get("springs"), material)
     return out
 
@@ -316,8 +384,10 @@ class Scene:
         """A new scene with some keys of some tables overridden, e.g. ``replace(simulation={"dt": 0.02})``."""
         raw = copy.deepcopy(self.source)
         for name, updates in sections.items():
-            raw.setdefault(name, {})
-            raw[name].update(updates)
+            if not isinstance(updates, Mapping):
+                raise _fail(name, "overrides must be a table (a dict of keys to replace)", updates)
+            table = raw.get(name, {})
+            raw[name] = {**(table if isinstance(table, Mapping) else {}), **updates}
         return Scene(raw, base_dir=self.base_dir)
 
     @property
