@@ -65,3 +65,15 @@ def spmv_seconds(A, repeats: int = 50) -> float:
         A @ x
         t.append(time.perf_counter() - t0)
     return statistics.median(t)
+
+
+def progress(iterable=None, total: int | None = None, desc: str | None = None):
+    """A tqdm progress bar on stderr when stderr is a terminal, a silent pass-through otherwise."""
+    from tqdm import tqdm
+
+    return tqdm(iterable, total=total, desc=desc, disable=not sys.stderr.isatty(), leave=False)
+
+
+def save_png(fig, path: Path, dpi: int = 120) -> None:
+    """Write a matplotlib figure to ``path`` as PNG, atomically."""
+    atomic_write(Path(path), lambda f: fig.savefig(f, format="png", dpi=dpi))
