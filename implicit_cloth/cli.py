@@ -93,11 +93,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(handler=cmd_run)
 
     bench = sub.add_parser(
-        "bench", help="run a benchmark from benchmarks/ (scaling, step_cost)",
+        "bench", help="run a benchmark from benchmarks/ (e.g. scaling, stability, damping, step_cost)",
         description="Run benchmarks/NAME.py of the source tree (an editable install or a clone). "
                     "Options after NAME go to the benchmark (e.g. --quick, --out DIR, --sizes 32 64).",
     )
-    bench.add_argument("name", metavar="NAME", help="benchmark name, e.g. scaling or step_cost")
+    bench.add_argument("name", metavar="NAME", help="benchmark name: the file name in benchmarks/ without .py, e.g. scaling, stability, damping")
     bench.add_argument("args", nargs=argparse.REMAINDER, help="options passed to the benchmark")
     bench.set_defaults(handler=cmd_bench)
     return parser
