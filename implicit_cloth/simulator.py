@@ -13,11 +13,11 @@ from typing import Any, Mapping
 import numpy as np
 
 from . import diagnostics
-from .errors import DivergenceError, SceneError, SolverWarning
+from .errors import DivergenceError, SolverWarning
 from .integrators import make_integrator
 from .io import save_npz
 from .model import Model, State
-from .scene import Scene, load_scene
+from .scene import Scene, _number, _run_length, load_scene
 
 
 class Trajectory:
@@ -109,9 +109,11 @@ class Simulator:
             overrides["integrator"] = integrator
         if dt is not None:
             overrides["dt"] = dt
-        if overrides or solver:
-            scene = scene.replace(**({"simulation": overrides} if overrides else {}),
-                                  **({"solver": dict(solver)} if solver else {}))
+        sections: dict[str, Any] = {"simulation": overrides} if overrides else {}
+        if solver is not None:   # Scene.replace checks it is a table (SceneError naming `solver` otherwise)
+            sections["solver"] = solver
+        if sections:
+            scene = scene.replace(**sections)
         self.scene = scene
         sim = scene.data["simulation"]
         self.integrator_name: str = sim["integrator"]
@@ -201,6 +203,10 @@ class Simulator:
 
         Raises
         ------
+        SceneError
+            If ``duration`` or ``frame_rate`` is not a finite number > 0, or the run
+            would exceed the scene's step or frame limits (same messages as the
+            ``[simulation]`` table).
         DivergenceError
             On a non-finite state or energy growth beyond the divergence bound
             (:mod:`implicit_cloth.diagnostics`); ``err.trajectory`` holds the
@@ -209,9 +215,9 @@ class Simulator:
         sim = self.scene.data["simulation"]
         duration = sim["duration"] if duration is None else duration
         frame_rate = sim["frame_rate"] if frame_rate is None else frame_rate
-        for key, val in (("duration", duration), ("frame_rate", frame_rate)):
-            if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val) or val <= 0:
-                raise SceneError(f"simulation.{key}: must be a finite number > 0, got {val!r}")
+        duration = _number("simulation.duration", duration, lo=0.0, lo_open=True)
+        frame_rate = _number("simulation.frame_rate", frame_rate, lo=0.0, lo_open=True)
+        _run_length({"dt": self.dt, "duration": duration, "frame_rate": frame_rate})
         factor = sim.get("divergence_factor", diagnostics.DEFAULT_DIVERGENCE_FACTOR)
         dt = self.dt
         n_steps = max(1, int(round(duration / dt)))

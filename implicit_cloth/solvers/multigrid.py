@@ -22,7 +22,9 @@ Constraints: the V-cycle preconditions ``S A S + (I - S)``, which is SPD
 whenever A is and leaves constrained components untouched, so the
 Baraff-Witkin filter stays exact. Smoother: one damped block-Jacobi sweep
 before and after the coarse correction (symmetric, so the V-cycle is an SPD
-preconditioner, as CG needs). Coarsest level: dense Cholesky.
+preconditioner, as CG needs). Coarsest level: dense Cholesky, shifted by a
+multiple of the identity when round-off makes the matrix numerically
+indefinite (see :func:`coarse_cholesky`).
 """
 
 from __future__ import annotations
@@ -143,6 +145,8 @@ class Multigrid:
         self._blocks: list[np.ndarray] = []
         self._A: list[sp.csr_array] = []
         self._chol = None
+        #: shift added to the coarsest matrix by the last setup (0: none; see coarse_cholesky)
+        self.coarse_shift = 0.0
 
     def _systems(self) -> list[SystemMatrix]:
         return [self.fine] + [lvl.system for lvl in self.levels]
@@ -172,8 +176,7 @@ class Multigrid:
             self._A.append(A)
             self._blocks.append(blocks)
             self._D[l].data[:] = inv3(blocks[sm.diag_index]).reshape(-1)
-        coarse = self._A[-1].toarray()
-        self._chol = sla.cho_factor(coarse, lower=False, check_finite=False)
+        self._chol, self.coarse_shift = coarse_cholesky(self._A[-1].toarray())
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         return self._vcycle(0, r)
@@ -186,6 +189,54 @@ class Multigrid:
         x += lvl.P3 @ self._vcycle(l + 1, lvl.R3 @ (b - A @ x))
         x += w * (D @ (b - A @ x))                        # post-smooth
         return x
+
+
+def coarse_cholesky(C: np.ndarray, max_tries: int = 40) -> tuple[tuple[np.ndarray, bool], float]:
+    """Cholesky factor of the coarsest matrix, or of ``C + tau I`` when ``C`` is numerically indefinite.
+
+    ``C = M + h^2 K + ...`` is SPD in exact arithmetic, but once ``k h^2 / m_i``
+    exceeds about ``1 / eps = 4.5e15`` the mass term falls below the round-off
+    of the stiffness term, and the rigid modes of ``K`` (eigenvalue ~ ``m_i``)
+    come out slightly negative. Then ``tau`` starts at ``n eps max|C_ii|`` (the
+    size of that round-off) and grows tenfold until the factorisation succeeds
+    (Nocedal & Wright 2006, Algorithm 3.3). ``(C + tau I)^-1`` is still SPD, so
+    the V-cycle stays a valid CG preconditioner, only a weaker one for the
+    modes below ``tau``; CG then needs more iterations or reports the step
+    unconverged, which the run counts.
+
+    Parameters
+    ----------
+    C : (n, n) array
+        The coarsest-level matrix.
+    max_tries : int
+        Shifts tried after the unshifted factorisation (tau grows by 10 each).
+
+    Returns
+    -------
+    factor : tuple
+        For :func:`scipy.linalg.cho_solve`.
+    tau : float
+        The shift used (0 when ``C`` itself factorised), in the units of ``C`` (kg).
+        A matrix with a non-finite entry (an overflowed assembly) is not
+        factorised: the identity stands in and ``tau`` is NaN; the solve then
+        produces a non-finite step, which the simulator reports as a divergence.
+    """
+    if not np.all(np.isfinite(C)):
+        return (np.eye(len(C)), False), float("nan")
+    try:
+        return sla.cho_factor(C, lower=False, check_finite=False), 0.0
+    except np.linalg.LinAlgError:
+        pass
+    scale = float(np.abs(np.diagonal(C)).max()) if len(C) else 1.0
+    tau = max(len(C) * np.finfo(float).eps * scale, np.finfo(float).tiny)
+    eye = np.eye(len(C))
+    for _ in range(max_tries):
+        try:
+            return sla.cho_factor(C + tau * eye, lower=False, check_finite=False), tau
+        except np.linalg.LinAlgError:
+            tau *= 10.0
+    # unreachable for a finite symmetric C: tau has passed its largest eigenvalue bound n max|C_ij|
+    return (np.eye(len(C)), False), float("nan")
 
 
 def _filtered_blocks(sm: SystemMatrix, blocks: np.ndarray, filt: Filter) -> np.ndarray:
