@@ -46,6 +46,9 @@ INTEGRATORS: tuple[str, ...] = (
     "bdf2",
 )
 
+#: The implicit integrators: adaptive stepping is on by default for these, off for the explicit baselines.
+IMPLICIT_INTEGRATORS: tuple[str, ...] = ("backward_euler", "bdf2")
+
 SPRING_KINDS: tuple[str, ...] = ("structural", "shear", "bend")
 CORNERS: tuple[str, ...] = ("top_left", "top_right", "bottom_left", "bottom_right")
 PLANES: tuple[str, ...] = ("xy", "xz", "yz")
@@ -57,7 +60,14 @@ DEFAULTS: dict[str, dict[str, Any]] = {
 }
 
 _TOP_KEYS = ("simulation", "solver", "cloth", "effects")
-_SIM_KEYS = ("integrator", "dt", "duration", "frame_rate", "divergence_factor")
+_SIM_KEYS = ("integrator", "dt", "duration", "frame_rate", "divergence_factor", "adaptive", "strain_limit")
+_ADAPTIVE_KEYS = ("enabled", "max_halvings", "grow_after", "max_strain", "max_energy_growth", "retry_unconverged")
+#: [simulation.adaptive] defaults; ``enabled`` defaults to whether the integrator is implicit.
+ADAPTIVE_DEFAULTS: dict[str, Any] = {"max_halvings": 5, "grow_after": 4, "max_strain": 1.0,
+                                     "max_energy_growth": 0.1, "retry_unconverged": True}
+_STRAIN_LIMIT_KEYS = ("max_strain", "iterations")
+#: Most halvings of the step (dt / 2^30 is below a nanosecond for dt = 1 s).
+MAX_HALVINGS = 30
 _SOLVER_KEYS = ("tolerance", "max_iterations", "preconditioner")
 _CLOTH_KEYS = (
     "size", "resolution", "center", "plane", "mesh", "scale", "translation",
@@ -150,6 +160,12 @@ def _vector(path: str, value: Any, n: int, *, positive: bool = False) -> list[fl
             for k, x in enumerate(value)]
 
 
+def _boolean(path: str, value: Any) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise _fail(path, "must be true or false", value)
+    return bool(value)
+
+
 def _choice(path: str, value: Any, choices: Iterable[str]) -> str:
     choices = tuple(choices)
     if not isinstance(value, str) or value not in choices:
@@ -174,7 +190,41 @@ def _simulation(d: Mapping[str, Any]) -> dict[str, Any]:
     if "divergence_factor" in d:
         out["divergence_factor"] = _number("simulation.divergence_factor", d["divergence_factor"], lo=1.0)
     _run_length(out)
+    out["adaptive"] = _adaptive(d.get("adaptive", {}), out["integrator"])
+    if "strain_limit" in d:
+        out["strain_limit"] = _strain_limit(d["strain_limit"])
     return out
+
+
+def _adaptive(d: Any, integrator: str) -> dict[str, Any]:
+    """``[simulation.adaptive]``: adaptive time stepping (see :mod:`implicit_cloth.adaptive`)."""
+    path = "simulation.adaptive"
+    _check_keys(path, d, _ADAPTIVE_KEYS)
+    out: dict[str, Any] = {"enabled": integrator in IMPLICIT_INTEGRATORS, **ADAPTIVE_DEFAULTS}
+    if "enabled" in d:
+        out["enabled"] = _boolean(f"{path}.enabled", d["enabled"])
+    if "max_halvings" in d:
+        out["max_halvings"] = _integer(f"{path}.max_halvings", d["max_halvings"], lo=0, hi=MAX_HALVINGS)
+    if "grow_after" in d:
+        out["grow_after"] = _integer(f"{path}.grow_after", d["grow_after"], lo=1)
+    if "max_strain" in d:
+        out["max_strain"] = _number(f"{path}.max_strain", d["max_strain"], lo=0.0, lo_open=True)
+    if "max_energy_growth" in d:
+        out["max_energy_growth"] = _number(f"{path}.max_energy_growth", d["max_energy_growth"], lo=0.0)
+    if "retry_unconverged" in d:
+        out["retry_unconverged"] = _boolean(f"{path}.retry_unconverged", d["retry_unconverged"])
+    return out
+
+
+def _strain_limit(d: Any) -> dict[str, Any]:
+    """``[simulation.strain_limit]``: Provot strain limiting (see :mod:`implicit_cloth.strain_limit`)."""
+    path = "simulation.strain_limit"
+    _check_keys(path, d, _STRAIN_LIMIT_KEYS)
+    if "max_strain" not in d:
+        raise SceneError(f"{path}.max_strain: missing (the largest relative stretch (l - L0) / L0 to allow, "
+                         f"e.g. 0.1)")
+    return {"max_strain": _number(f"{path}.max_strain", d["max_strain"], lo=0.0, lo_open=True),
+            "iterations": _integer(f"{path}.iterations", d.get("iterations", 10), lo=1, hi=10_000)}
 
 
 def _run_length(sim: Mapping[str, Any]) -> None:

@@ -16,6 +16,7 @@ from . import diagnostics
 from .errors import DivergenceError, SolverWarning
 from .integrators import make_integrator
 from .io import save_npz
+from .adaptive import AdaptiveStats, StepController
 from .model import Model, State
 from .scene import Scene, _number, _run_length, load_scene
 
@@ -126,6 +127,17 @@ class Simulator:
         self.state = State(x, v, 0.0)
         self.last_step: Any = None
         self.blas_threads = blas_threads
+        #: adaptive step control (``simulation.adaptive.enabled``), else None
+        self.adaptive: StepController | None = None
+        if sim["adaptive"]["enabled"]:
+            scale = diagnostics.energy_scale(self.model, x, v, sim["duration"])
+            self.adaptive = StepController(self.model, sim["adaptive"], scale)
+        #: Provot strain limiting (``[simulation.strain_limit]``), else None
+        self.strain_limiter: Any = None
+        if "strain_limit" in sim:
+            from .strain_limit import StrainLimiter   # only scenes that declare it import it
+
+            self.strain_limiter = StrainLimiter(self.model, sim["strain_limit"])
 
     # ------------------------------------------------------------------ state access
     @property
@@ -167,9 +179,22 @@ class Simulator:
         return a
 
     # ------------------------------------------------------------------ stepping
+    def _substep(self, state: State, h: float) -> tuple[State, Any]:
+        """One integrator step of ``h`` seconds from ``state``, then strain limiting if declared.
+
+        The unit that adaptive stepping discards and redoes with a smaller ``h``.
+        """
+        new, info = self.integrator.step(state, h)
+        if self.strain_limiter is not None:
+            self.strain_limiter.apply(new, h)
+        return new, info
+
     def _advance(self) -> Any:
         with np.errstate(over="ignore", invalid="ignore"):   # a blow-up is reported below, not warned
-            new, info = self.integrator.step(self.state, self.dt)
+            if self.adaptive is None:
+                new, info = self._substep(self.state, self.dt)
+            else:
+                new, info = self.adaptive.advance(self.state, self.dt, self._substep)
         if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
             raise _NonFinite(f"non-finite state at t={new.t:.6g} s")
         self.state = new
@@ -226,12 +251,18 @@ class Simulator:
         e0 = diagnostics.measure(model, self.state.x, self.state.v)
         scale = diagnostics.energy_scale(model, self.state.x, self.state.v, n_steps * dt)
         bound = factor * scale
+        if self.adaptive is not None:   # the energy criterion uses this run's scale; counters start afresh
+            self.adaptive.energy_scale = scale
+            self.adaptive.stats = AdaptiveStats()
+            self.adaptive.window_min_step = math.inf
+        if self.strain_limiter is not None:
+            self.strain_limiter.reset_stats()
 
         pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity))
         pin_work, pin_p = 0.0, diagnostics.pin_power(model, self.state.x, self.state.v, self.state.t)
         frames: dict[str, list[float]] = {k: [] for k in (
             "time", "kinetic", "gravity", "springs", "potential", "total", "pin_work", "max_strain",
-            "solver_iterations", "solver_residual", "t_assembly", "t_setup", "t_solve", "t_other")}
+            "solver_iterations", "solver_residual", "min_step", "t_assembly", "t_setup", "t_solve", "t_other")}
         positions: list[np.ndarray] = []
         totals = {"steps": 0, "iterations": 0, "max_iterations": 0, "max_residual": 0.0, "unconverged_steps": 0}
         acc = {"it": 0, "res": 0.0, "t_assembly": 0.0, "t_setup": 0.0, "t_solve": 0.0, "t_other": 0.0}
@@ -244,6 +275,10 @@ class Simulator:
             frames["pin_work"].append(pin_work)
             frames["solver_iterations"].append(acc["it"])
             frames["solver_residual"].append(acc["res"])
+            frames["min_step"].append(dt)
+            if self.adaptive is not None and math.isfinite(self.adaptive.window_min_step):
+                frames["min_step"][-1] = self.adaptive.window_min_step
+                self.adaptive.window_min_step = math.inf
             for k in ("t_assembly", "t_setup", "t_solve", "t_other"):
                 frames[k].append(acc[k])
                 acc[k] = 0.0
@@ -322,7 +357,20 @@ class Simulator:
             "wall_time": wall,
             "timing": {k: float(np.sum(frames[k])) for k in ("t_assembly", "t_setup", "t_solve", "t_other")},
             "frames": frames,
+            "adaptive": None,
+            "strain_limit": None,
         }
+        if self.adaptive is not None:
+            a, st = self.adaptive, self.adaptive.stats
+            report["adaptive"] = {
+                "max_halvings": a.max_halvings, "grow_after": a.grow_after, "max_strain": a.max_strain,
+                "max_energy_growth": a.max_energy_growth, "retry_unconverged": a.retry_unconverged,
+                "substeps": st.substeps, "retries": st.retries, "forced": st.forced,
+                "failures": dict(st.failures), "min_step": st.min_step if math.isfinite(st.min_step) else dt,
+            }
+        if self.strain_limiter is not None:
+            report["strain_limit"] = {"max_strain": self.strain_limiter.max_strain,
+                                      "iterations": self.strain_limiter.iterations, **self.strain_limiter.stats}
         if self.integrator.implicit:
             n = max(totals["steps"], 1)
             report["solver"] = {
