@@ -176,6 +176,14 @@ def _summary(traj: Trajectory, npz: Path, js: Path) -> str:
             f"solver       {s['preconditioner']} PCG, iterations mean {s['mean_iterations']:.1f} / "
             f"max {s['max_iterations']}, max residual {s['max_residual']:.3g} (tolerance {s['tolerance']:g}), "
             f"unconverged steps {s['unconverged_steps']}")
+    a = r.get("adaptive")
+    if a:
+        lines.append(f"adaptive     {a['substeps']} substeps, {a['retries']} retries, {a['forced']} forced, "
+                     f"smallest step {a['min_step']:g} s")
+    sl = r.get("strain_limit")
+    if sl:
+        lines.append(f"strain limit {sl['max_strain']:g}: {sl['springs_limited']} over-stretched springs in "
+                     f"{sl['steps_limited']} steps, max strain after limiting {sl['max_strain_after']:.4g}")
     status = r.get("status")
     lines.append(f"status       {status}" + (f" ({r['reason']})" if r.get("reason") else ""))
     lines.append(f"trajectory   {npz}")

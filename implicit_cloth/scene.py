@@ -206,7 +206,7 @@ def _adaptive(d: Any, integrator: str) -> dict[str, Any]:
     if "max_halvings" in d:
         out["max_halvings"] = _integer(f"{path}.max_halvings", d["max_halvings"], lo=0, hi=MAX_HALVINGS)
     if "grow_after" in d:
-        out["grow_after"] = _integer(f"{path}.grow_after", d["grow_after"], lo=1)
+        out["grow_after"] = _integer(f"{path}.grow_after", d["grow_after"], lo=1, hi=10**6)
     if "max_strain" in d:
         out["max_strain"] = _number(f"{path}.max_strain", d["max_strain"], lo=0.0, lo_open=True)
     if "max_energy_growth" in d:
@@ -220,11 +220,12 @@ def _strain_limit(d: Any) -> dict[str, Any]:
     """``[simulation.strain_limit]``: Provot strain limiting (see :mod:`implicit_cloth.strain_limit`)."""
     path = "simulation.strain_limit"
     _check_keys(path, d, _STRAIN_LIMIT_KEYS)
+    iterations = _integer(f"{path}.iterations", d.get("iterations", 10), lo=1, hi=10_000)
     if "max_strain" not in d:
         raise SceneError(f"{path}.max_strain: missing (the largest relative stretch (l - L0) / L0 to allow, "
                          f"e.g. 0.1)")
     return {"max_strain": _number(f"{path}.max_strain", d["max_strain"], lo=0.0, lo_open=True),
-            "iterations": _integer(f"{path}.iterations", d.get("iterations", 10), lo=1, hi=10_000)}
+            "iterations": iterations}
 
 
 def _run_length(sim: Mapping[str, Any]) -> None:

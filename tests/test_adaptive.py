@@ -181,7 +181,7 @@ def test_nonfinite_at_smallest_step_is_a_divergence_error():
     ("enabled", "yes", "simulation.adaptive.enabled: must be true or false, got 'yes'"),
     ("max_halvings", -1, "simulation.adaptive.max_halvings: must be an integer >= 0 and <= 30, got -1"),
     ("max_halvings", 31, "simulation.adaptive.max_halvings: must be an integer >= 0 and <= 30, got 31"),
-    ("grow_after", 0, "simulation.adaptive.grow_after: must be an integer >= 1, got 0"),
+    ("grow_after", 0, "simulation.adaptive.grow_after: must be an integer >= 1 and <= 1000000, got 0"),
     ("max_strain", 0.0, "simulation.adaptive.max_strain: must be a finite number > 0, got 0.0"),
     ("max_energy_growth", float("nan"), "simulation.adaptive.max_energy_growth: must be a finite number >= 0, got nan"),
     ("retry_unconverged", 1, "simulation.adaptive.retry_unconverged: must be true or false, got 1"),

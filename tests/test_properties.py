@@ -56,6 +56,15 @@ def valid_scenes(draw):
                   "frame_rate": draw(st.sampled_from([5.0, 30.0, 60.0, 1000.0]))}
     if draw(st.booleans()):
         simulation["divergence_factor"] = draw(log_uniform(0, 6))
+    if draw(st.booleans()):
+        adaptive = {"enabled": draw(st.booleans()), "max_halvings": draw(st.integers(0, 6)),
+                    "grow_after": draw(st.integers(1, 6)), "max_strain": draw(log_uniform(-2, 1)),
+                    "max_energy_growth": draw(st.floats(0.0, 10.0)), "retry_unconverged": draw(st.booleans())}
+        simulation["adaptive"] = {k: v for k, v in adaptive.items() if draw(st.booleans())}
+    if draw(st.booleans()):
+        simulation["strain_limit"] = {"max_strain": draw(log_uniform(-2, 0))}
+        if draw(st.booleans()):
+            simulation["strain_limit"]["iterations"] = draw(st.integers(1, 50))
     cloth = {}
     if draw(st.booleans()):
         cloth["size"] = [draw(log_uniform(-1, 0.7)), draw(log_uniform(-1, 0.7))]
@@ -165,6 +174,10 @@ BAD = {
     "tol": COMMON_BAD + [0, 1.0000001, 2, -1e-3],
     "iters": COMMON_BAD + [0, -1, 2.0, 1.5, 10**6 + 1, np.float64(10)],
     "choice": COMMON_BAD + ["", "nonsense", "XZ", 5, ["xz"]],
+    "bool": [None, "1", "true", "abc", {"x": 1}, [], [True], NAN, 0, 1, 1.0, 10**400, datetime.date(2020, 1, 1),
+             b"1", 1j],
+    "halvings": COMMON_BAD + [-1, 31, 2.0, 1.5, np.float64(3)],
+    "count1": COMMON_BAD + [0, -1, 2.0, 1.5, np.float64(3)],
     "vec3": COMMON_BAD + [[0, 0], [0, 0, 0, 0], [NAN, 0, 0], [0, INF, 0], ["0", 0, 0], [None, 0, 0], [True, 0, 0],
                           0.0, "0 0 0", [[0], 0, 0], [10**400, 0, 0], np.zeros(2), np.zeros((3, 1))],
     "vec2pos": COMMON_BAD + [[1.0], [1, 1, 1], [0, 1], [-1, 1], [NAN, 1], [1, INF], ["1", 1], 1.0, [1, -0.0]],
@@ -178,6 +191,10 @@ BAD = {
 SCHEMA = {
     "simulation.integrator": "choice", "simulation.dt": "pos", "simulation.duration": "pos",
     "simulation.frame_rate": "pos", "simulation.divergence_factor": "ge1",
+    "simulation.adaptive.enabled": "bool", "simulation.adaptive.max_halvings": "halvings",
+    "simulation.adaptive.grow_after": "count1", "simulation.adaptive.max_strain": "pos",
+    "simulation.adaptive.max_energy_growth": "nonneg", "simulation.adaptive.retry_unconverged": "bool",
+    "simulation.strain_limit.max_strain": "pos", "simulation.strain_limit.iterations": "count1",
     "solver.tolerance": "tol", "solver.max_iterations": "iters", "solver.preconditioner": "choice",
     "cloth.size": "vec2pos", "cloth.resolution": "res", "cloth.center": "vec3", "cloth.plane": "choice",
     "cloth.mass": "pos", "cloth.density": "pos", "cloth.velocity": "vec3", "cloth.pins": "pins",
@@ -187,6 +204,7 @@ SCHEMA = {
 }
 TABLES = {"": sc._TOP_KEYS, "simulation": sc._SIM_KEYS, "solver": sc._SOLVER_KEYS, "cloth": sc._CLOTH_KEYS,
           "cloth.springs": sc.SPRING_KINDS, "effects": sc._EFFECT_KEYS, "effects.wind": ("velocity",),
+          "simulation.adaptive": sc._ADAPTIVE_KEYS, "simulation.strain_limit": sc._STRAIN_LIMIT_KEYS,
           **{f"cloth.springs.{k}": ("stiffness", "damping") for k in sc.SPRING_KINDS}}
 
 
@@ -228,7 +246,8 @@ def invalid_scenes(draw):
         target[key] = draw(st.one_of(st.integers(), st.floats(), st.text(max_size=5), st.none()))
         return scene, f"{table}.{key}: unknown key" if table else f"{key}: unknown key"
     if kind == "not_a_table":
-        tables = ["simulation", "solver", "cloth", "effects", "cloth.springs", "effects.wind"]
+        tables = ["simulation", "solver", "cloth", "effects", "cloth.springs", "effects.wind",
+                  "simulation.adaptive", "simulation.strain_limit"]
         tables += [f"cloth.springs.{k}" for k in sc.SPRING_KINDS]
         table = draw(st.sampled_from(tables))
         _set(scene, table, draw(st.sampled_from([5, 1.5, "x", [1, 2], [], True, None, ("a",)])))
@@ -241,6 +260,8 @@ def invalid_scenes(draw):
             for k, spec in cloth.get("springs", {}).items():
                 if "stiffness" in spec:
                     options.append((f"cloth.springs.{k}.stiffness", f"cloth.springs.{k}.stiffness: missing"))
+        if "strain_limit" in scene.get("simulation", {}):
+            options.append(("simulation.strain_limit.max_strain", "simulation.strain_limit.max_strain: missing"))
         if "wind" in scene.get("effects", {}):
             options += [("effects.drag", "effects.drag: missing"),
                         ("effects.wind.velocity", "effects.wind.velocity: missing")]
