@@ -210,5 +210,9 @@ class StepController:
         return state, total
 
     def reset(self) -> None:
-        """Forget the cached measures (after the state is assigned); the level and counters stay."""
+        """After the state is assigned: forget the cached measures and the suspended criteria.
+
+        The level (current step) and the counters stay.
+        """
         self._cache = None
+        self.suspended.clear()

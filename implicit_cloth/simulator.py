@@ -150,7 +150,7 @@ class Simulator:
         x = self._checked(x, "positions")
         self.model.set_pin_anchors(x, self.state.t)
         self.state = State(x, self.state.v.copy(), self.state.t)
-        self.integrator.reset()
+        self._reset_history()
 
     @property
     def velocities(self) -> np.ndarray:
@@ -163,7 +163,13 @@ class Simulator:
         x = self.state.x.copy()
         self.model.apply_pins(x, v, self.state.t)
         self.state = State(x, v, self.state.t)
+        self._reset_history()
+
+    def _reset_history(self) -> None:
+        """After the state is assigned: integrator history and suspended adaptive criteria are forgotten."""
         self.integrator.reset()
+        if self.adaptive is not None:
+            self.adaptive.reset()
 
     @property
     def time(self) -> float:

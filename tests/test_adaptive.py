@@ -119,6 +119,8 @@ def test_unconverged_solves_are_retried_then_forced():
     assert ad["failures"]["solver"] >= 3 and ad["retries"] >= 2 and ad["forced"] >= 1
     assert ad["min_step"] == pytest.approx((1 / 30) / 4)
     assert "solver" in sim.adaptive.suspended
+    sim.velocities = sim.velocities          # assigning the state forgets the suspension
+    assert not sim.adaptive.suspended
 
 
 # --------------------------------------------------------------------------- the controller alone
