@@ -13,10 +13,10 @@ from typing import Any, Mapping
 import numpy as np
 
 from . import diagnostics
+from .adaptive import AdaptiveStats, StepController
 from .errors import DivergenceError, SolverWarning
 from .integrators import make_integrator
 from .io import save_npz
-from .adaptive import AdaptiveStats, StepController
 from .model import Model, State
 from .scene import Scene, _number, _run_length, load_scene
 
