@@ -77,3 +77,8 @@ def progress(iterable=None, total: int | None = None, desc: str | None = None):
 def save_png(fig, path: Path, dpi: int = 120) -> None:
     """Write a matplotlib figure to ``path`` as PNG, atomically."""
     atomic_write(Path(path), lambda f: fig.savefig(f, format="png", dpi=dpi))
+
+
+#: ``[simulation.adaptive]`` for benchmarks that measure an integrator itself (its stability region, its numerical
+#: damping): adaptive stepping (on by default for the implicit methods) would hide exactly what they measure.
+FIXED_STEPS = {"enabled": False}

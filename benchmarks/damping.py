@@ -74,7 +74,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import ROOT, ic, machine, progress, save_png, write_outputs
+from _common import FIXED_STEPS, ROOT, ic, machine, progress, save_png, write_outputs
 from implicit_cloth import diagnostics
 
 EXPLICIT = ("forward_euler", "symplectic_euler", "verlet", "rk4")
@@ -136,7 +136,7 @@ def extremes(t: np.ndarray, y: np.ndarray) -> list[tuple[float, float]]:
 
 def run_one(n: int, damping: str, integrator: str, dt: float, x0: np.ndarray, v0: np.ndarray, e_eq: float,
             duration: float) -> dict:
-    sim = ic.Simulator(scene(n, damping), integrator=integrator, dt=dt)
+    sim = ic.Simulator(scene(n, damping), integrator=integrator, dt=dt, adaptive=FIXED_STEPS)
     sim.positions = x0
     sim.velocities = v0
     t0 = time.perf_counter()

@@ -97,7 +97,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from _common import ROOT, hanging_stiff, ic, machine, progress, save_png, write_outputs
+from _common import FIXED_STEPS, ROOT, hanging_stiff, ic, machine, progress, save_png, write_outputs
 from implicit_cloth import diagnostics
 
 EXPLICIT = ("forward_euler", "symplectic_euler", "verlet", "rk4")
@@ -180,7 +180,7 @@ def trial(base: dict, integrator: str, dt: float, duration: float, min_steps: in
     # stopping early saves time); implicit runs use the library's default bound so that the whole run is seen
     # and its verdict under the library's own divergence check is known too
     factor = 1.0 if integrator in EXPLICIT else diagnostics.DEFAULT_DIVERGENCE_FACTOR
-    sim = ic.Simulator(base, integrator=integrator, dt=dt, divergence_factor=factor)
+    sim = ic.Simulator(base, integrator=integrator, dt=dt, divergence_factor=factor, adaptive=FIXED_STEPS)
     perturbed(sim, seed)
     # the bound: the energy scale of a run of exactly `duration` from this state (the same for every dt)
     bound = diagnostics.energy_scale(sim.model, sim.positions, sim.velocities, duration)
@@ -253,7 +253,7 @@ def search(test, guess: float, floor: float, cap: float, rtol: float) -> dict:
 
 def step_cost(base: dict, integrator: str, dt: float, steps: int, repeats: int, seed: int) -> float | None:
     """Median wall time of one step at ``dt`` over ``repeats`` runs of ``steps`` steps, s (None if it diverged)."""
-    sim = ic.Simulator(base, integrator=integrator, dt=dt)
+    sim = ic.Simulator(base, integrator=integrator, dt=dt, adaptive=FIXED_STEPS)
     perturbed(sim, seed)
     times = []
     with warnings.catch_warnings():
