@@ -122,6 +122,11 @@ class Simulator:
         v = np.broadcast_to(np.asarray(scene.data["cloth"]["velocity"], dtype=float), x.shape).copy()
         self.model.apply_pins(x, v, 0.0)
         self.state = State(x, v, 0.0)
+        self.collider: Any = None
+        if scene.data["obstacles"]:   # fcl and the collision code are imported only for obstacles
+            from .collision import Collider
+
+            self.collider = Collider(scene.data["obstacles"], scene.data["collision"], self.model)
         self.last_step: Any = None
         self.blas_threads = blas_threads
 
@@ -166,10 +171,14 @@ class Simulator:
 
     # ------------------------------------------------------------------ stepping
     def _advance(self) -> Any:
+        if self.collider is not None:
+            self.collider.constrain(self.integrator, self.state)
         with np.errstate(over="ignore", invalid="ignore"):   # a blow-up is reported below, not warned
             new, info = self.integrator.step(self.state, self.dt)
         if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
             raise _NonFinite(f"non-finite state at t={new.t:.6g} s")
+        if self.collider is not None:   # corrects new.x, new.v in place (BDF2 keeps it as history)
+            info.collision = self.collider.respond(self.state, new, self.dt, self.integrator)
         self.state = new
         self.last_step = info
         return info
@@ -226,6 +235,9 @@ class Simulator:
         frames: dict[str, list[float]] = {k: [] for k in (
             "time", "kinetic", "gravity", "springs", "potential", "total", "pin_work", "max_strain",
             "solver_iterations", "solver_residual", "t_assembly", "t_setup", "t_solve", "t_other")}
+        col = _CollisionTotals() if self.collider is not None else None
+        if col is not None:
+            frames["t_collision"] = []
         positions: list[np.ndarray] = []
         totals = {"steps": 0, "iterations": 0, "max_iterations": 0, "max_residual": 0.0, "unconverged_steps": 0}
         acc = {"it": 0, "res": 0.0, "t_assembly": 0.0, "t_setup": 0.0, "t_solve": 0.0, "t_other": 0.0}
@@ -241,6 +253,9 @@ class Simulator:
             for k in ("t_assembly", "t_setup", "t_solve", "t_other"):
                 frames[k].append(acc[k])
                 acc[k] = 0.0
+            if col is not None:
+                frames["t_collision"].append(col.frame_time)
+                col.frame_time = 0.0
             acc["it"], acc["res"] = 0, 0.0
 
         status, reason = "ok", ""
@@ -276,6 +291,9 @@ class Simulator:
                 acc["t_assembly"] += info.t_assembly
                 acc["t_setup"] += info.t_setup
                 acc["t_solve"] += info.t_solve
+                if col is not None:
+                    col.add(info.collision)
+                    acc["t_other"] -= info.collision.t_collision
                 if next_frame < len(keep) and s == keep[next_frame]:
                     m = diagnostics.measure(model, self.state.x, self.state.v)
                     growth = m["total"] - e0["total"] - pin_work
@@ -317,6 +335,9 @@ class Simulator:
             "timing": {k: float(np.sum(frames[k])) for k in ("t_assembly", "t_setup", "t_solve", "t_other")},
             "frames": frames,
         }
+        if col is not None:
+            report["timing"]["t_collision"] = col.time
+            report["collision"] = col.report(self.collider)
         if self.integrator.implicit:
             n = max(totals["steps"], 1)
             report["solver"] = {
@@ -338,6 +359,48 @@ class Simulator:
         if status == "diverged":
             raise DivergenceError(reason, traj)
         return traj
+
+
+class _CollisionTotals:
+    """Run totals of the collision stage (the report's "collision" section)."""
+
+    def __init__(self) -> None:
+        self.steps = self.contacts = self.candidates = self.failsafe_steps = self.failsafe_vertices = 0
+        self.max_resting = 0
+        self.max_penetration = 0.0
+        self.time = self.frame_time = 0.0
+        self.toi = math.inf
+
+    def add(self, c: Any) -> None:
+        self.steps += 1
+        self.contacts += c.contacts
+        self.candidates += c.candidates
+        self.max_resting = max(self.max_resting, c.resting)
+        self.failsafe_steps += int(c.failsafe > 0)
+        self.failsafe_vertices += c.failsafe
+        self.max_penetration = max(self.max_penetration, c.max_penetration)
+        self.time += c.t_collision
+        self.frame_time += c.t_collision
+        if c.toi == c.toi:   # not nan
+            self.toi = min(self.toi, c.toi)
+
+    def report(self, collider: Any) -> dict[str, Any]:
+        n = max(self.steps, 1)
+        return {
+            "obstacles": [o.shape.name for o in collider.obstacles],
+            "thickness": collider.thickness,
+            "contacts": self.contacts,
+            "mean_contacts": self.contacts / n,
+            "candidates": self.candidates,
+            "mean_candidates": self.candidates / n,
+            "max_resting_contacts": self.max_resting,
+            "earliest_toi": self.toi if math.isfinite(self.toi) else None,
+            "max_penetration": self.max_penetration,
+            "failsafe_steps": self.failsafe_steps,
+            "failsafe_vertices": self.failsafe_vertices,
+            "time": self.time,
+            "mean_time_per_step": self.time / n,
+        }
 
 
 _CONTROLLER: Any = None

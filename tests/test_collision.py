@@ -1,0 +1,340 @@
+"""Collisions: scene keys, signed distances, sweeps, time of impact, and cloth against obstacles.
+
+The cloth tests check every kept frame: no cloth vertex inside an obstacle and
+no point sampled along any cloth edge inside it, with a tolerance of a small
+fraction of the thickness.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+import implicit_cloth as ic
+from implicit_cloth.collision import ccd, shapes
+
+TH = 0.005                                  # thickness used by the cloth scenes, m
+TOL = 0.1 * TH                              # allowed depth inside an obstacle, m
+
+
+# --------------------------------------------------------------------------- scenes
+def cloth_scene(obstacle, *, dt=1 / 60, duration=0.5, res=16, size=0.6, center=(0.0, 0.0, 0.15),
+                plane="xy", pins=(), friction=None, gravity=(0.0, 0.0, -9.81), collision=None, **sim):
+    ob = dict(obstacle)
+    if friction is not None:
+        ob["friction"] = friction
+    return {
+        "simulation": {"dt": dt, "duration": duration, "frame_rate": 60, **sim},
+        "cloth": {"size": [size, size], "resolution": [res, res], "center": list(center), "plane": plane,
+                  "mass": 0.1, "pins": list(pins),
+                  "springs": {"structural": {"stiffness": 1000.0, "damping": 0.5},
+                              "shear": {"stiffness": 100.0, "damping": 0.1},
+                              "bend": {"stiffness": 2.0, "damping": 0.01}}},
+        "effects": {"gravity": list(gravity), "drag": 0.1},
+        "obstacles": [ob],
+        "collision": {"thickness": TH, **(collision or {})},
+    }
+
+
+def depths(sim: ic.Simulator, traj: ic.Trajectory, samples: int = 9) -> tuple[float, float]:
+    """Largest depth inside the obstacle over all frames: of vertices, and of points along edges, m."""
+    col = sim.collider
+    ob = col.obstacles[0]
+    e = col.edges
+    s = np.linspace(0.0, 1.0, samples)
+    worst_v = worst_e = 0.0
+    for x, t in zip(traj.positions, traj.times):
+        p = ob.motion.to_local(x, t)
+        worst_v = max(worst_v, float(np.max(-ob.shape.distance(p))))
+        pe = p[e[:, 0], None] * (1 - s)[None, :, None] + p[e[:, 1], None] * s[None, :, None]
+        worst_e = max(worst_e, float(np.max(-ob.shape.distance(pe.reshape(-1, 3)))))
+    return worst_v, worst_e
+
+
+# --------------------------------------------------------------------------- scene keys
+def test_scene_without_obstacles_does_not_import_collision_or_fcl():
+    code = ("import sys, implicit_cloth as ic\n"
+            "s = ic.Simulator({'cloth': {'mass': 0.1, 'resolution': [4, 4]}, 'effects': {'gravity': [0, 0, -9.81]}})\n"
+            "s.step(2)\n"
+            "assert s.collider is None\n"
+            "print('fcl' in sys.modules, 'implicit_cloth.collision' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"]
+
+
+def test_obstacle_defaults_and_effects_list():
+    sc = ic.Scene.from_dict(cloth_scene({"shape": "sphere", "radius": 0.2}))
+    ob = sc.data["obstacles"][0]
+    assert ob["center"] == [0.0, 0.0, 0.0] and ob["velocity"] == [0.0, 0.0, 0.0] and ob["friction"] == 0.0
+    assert sc.data["collision"] == {"thickness": TH, "restitution": 0.0, "max_iterations": 8}
+    assert "collision" in sc.effects
+    plain = ic.Scene.from_dict({"cloth": {"mass": 0.1}})
+    assert plain.data["obstacles"] == [] and plain.data["collision"] is None
+
+
+@pytest.mark.parametrize("obstacles, collision, message", [
+    ([{"shape": "sphere"}], None, "obstacles[0].radius: missing"),
+    ([{"shape": "sphere", "radius": -1}], None, "obstacles[0].radius: must be a finite number > 0, got -1"),
+    ([{"shape": "spere", "radius": 1}], None, "obstacles[0].shape: must be one of sphere, box, cone, capsule, "
+                                              "plane (did you mean 'sphere'?), got 'spere'"),
+    ([{"shape": "box", "size": [1, 1]}], None, "obstacles[0].size: must be a list of 3 numbers"),
+    ([{"shape": "sphere", "radius": 1}, {"shape": "cone", "radius": 1, "height": 1, "axis": [0, 0, 0]}], None,
+     "obstacles[1].axis: must be a non-zero direction, got [0, 0, 0]"),
+    ([{"shape": "plane", "radius": 1}], None, "obstacles[0].radius: unknown key"),
+    ([{"shape": "sphere", "radius": 1, "frictoin": 0.2}], None, "(did you mean 'friction'?)"),
+    ([{"shape": "sphere", "radius": 1, "friction": -0.1}], None, "obstacles[0].friction: must be a finite number >= 0"),
+    ([{"shape": "sphere", "radius": 1}], {"thickness": 0}, "collision.thickness: must be a finite number > 0, got 0"),
+    ([{"shape": "sphere", "radius": 1}], {"restitution": 1.5}, "collision.restitution: must be a finite number >= 0 "
+                                                               "and <= 1, got 1.5"),
+    ([], {"thickness": 0.01}, "collision: given, but the scene has no [[obstacles]]"),
+    ({"shape": "sphere"}, None, "obstacles: must be an array of tables"),
+])
+def test_bad_obstacle_keys_name_the_path(obstacles, collision, message):
+    d = {"cloth": {"mass": 0.1}, "obstacles": obstacles}
+    if collision is not None:
+        d["collision"] = collision
+    with pytest.raises(ic.SceneError) as err:
+        ic.Scene.from_dict(d)
+    assert message in str(err.value)
+
+
+# --------------------------------------------------------------------------- signed distances
+def _brute_signed_distance(mesh: trimesh.Trimesh, p: np.ndarray) -> np.ndarray:
+    """Distance to the nearest triangle by brute force over all of them; negative inside (convex mesh)."""
+    tri = mesh.triangles
+    k, t = len(p), len(tri)
+    P = np.repeat(p, t, axis=0)
+    q, _ = ccd.point_triangle_closest(P, np.tile(tri[:, 0], (k, 1)), np.tile(tri[:, 1], (k, 1)),
+                                      np.tile(tri[:, 2], (k, 1)))
+    d = np.linalg.norm(P - q, axis=1).reshape(k, t).min(axis=1)
+    inside = np.all((p @ mesh.face_normals.T) - np.einsum("ij,ij->i", mesh.face_normals, tri[:, 0]) < 0, axis=1)
+    return np.where(inside, -d, d)
+
+
+@pytest.mark.parametrize("shape, mesh, tol", [
+    (shapes.Sphere(0.3), trimesh.creation.icosphere(subdivisions=4, radius=0.3), 1e-3),
+    (shapes.Box([0.4, 0.2, 0.6]), trimesh.creation.box(extents=[0.4, 0.2, 0.6]), 1e-12),
+    (shapes.Capsule(0.15, 0.5), trimesh.creation.capsule(height=0.5, radius=0.15, count=[64, 64]), 1e-3),
+    (shapes.Cone(0.25, 0.4), trimesh.creation.cone(radius=0.25, height=0.4, sections=512), 2e-5),
+])
+def test_signed_distance_matches_brute_force_on_a_fine_mesh(shape, mesh, tol):
+    rng = np.random.default_rng(1)
+    p = rng.uniform(-0.5, 0.5, (120, 3)) + (mesh.bounds.mean(axis=0))
+    ref = _brute_signed_distance(mesh, p)
+    phi = shape.distance(p)
+    assert np.max(np.abs(phi - ref)) < tol
+
+
+@pytest.mark.parametrize("shape", [shapes.Sphere(0.3), shapes.Box([0.4, 0.2, 0.6]), shapes.Capsule(0.15, 0.5),
+                                   shapes.Cone(0.25, 0.4)])
+def test_normal_is_the_gradient_and_closest_point_is_on_the_surface(shape):
+    rng = np.random.default_rng(2)
+    p = rng.uniform(-0.6, 0.6, (200, 3))
+    phi, n, c = shape.closest(p)
+    h = 1e-6
+    grad = np.stack([(shape.distance(p + h * e) - shape.distance(p - h * e)) / (2 * h) for e in np.eye(3)], axis=1)
+    smooth = np.linalg.norm(grad, axis=1) > 0.999          # away from the medial axis (kinks of phi)
+    assert smooth.mean() > 0.9
+    assert np.allclose(n[smooth], grad[smooth], atol=1e-5)
+    assert np.allclose(np.linalg.norm(n, axis=1), 1.0)
+    assert np.allclose(shape.distance(c), 0.0, atol=1e-9)
+    assert np.allclose(np.linalg.norm(p - c, axis=1), np.abs(phi), atol=1e-9)
+
+
+# --------------------------------------------------------------------------- sweeps and time of impact
+def test_sweep_closed_forms_plane_sphere_cone_tip():
+    r = TH
+    p0 = np.array([[0.1, -0.2, 0.9]])
+    p1 = np.array([[0.1, -0.2, -0.3]])
+    # plane z = 0: z(s) = r
+    assert shapes.Plane().sweep(p0, p1, r)[0] == pytest.approx((0.9 - r) / 1.2, rel=1e-12)
+    # sphere of radius R at the origin, straight down the z axis
+    R = 0.4
+    s = shapes.Sphere(R).sweep(np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, -1.0]]), r)[0]
+    assert s == pytest.approx((1.0 - R - r) / 2.0, rel=1e-12)
+    # off-axis: |p0 + s d|^2 = (R + r)^2 solved by hand
+    a, b = np.array([0.1, 0.2, 1.0]), np.array([0.1, 0.2, -1.0])
+    z = np.sqrt((R + r) ** 2 - 0.05)
+    assert shapes.Sphere(R).sweep(a[None], b[None], r)[0] == pytest.approx((1.0 - z) / 2.0, rel=1e-12)
+    # cone tip: a vertex falling onto the apex stops at H + r, with the normal straight up
+    cone = shapes.Cone(0.25, 0.4)
+    s = cone.sweep(np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, 0.0]]), r)[0]
+    assert s == pytest.approx((1.0 - 0.4 - r) / 1.0, abs=r * shapes.SWEEP_TOLERANCE)
+    _, n, c = cone.closest(np.array([[0.0, 0.0, 1.0 - s]]))
+    assert np.allclose(n, [[0, 0, 1]]) and np.allclose(c, [[0, 0, 0.4]])
+    # a miss is inf, a start inside is 0
+    assert np.isinf(cone.sweep(np.array([[1.0, 0, 1]]), np.array([[1.0, 0, 0]]), r)[0])
+    assert cone.sweep(np.array([[0.0, 0, 0.1]]), np.array([[0.0, 0, 1]]), r)[0] == 0.0
+
+
+def test_sweep_never_stops_inside_the_inflated_shape():
+    rng = np.random.default_rng(3)
+    for shape in (shapes.Box([0.4, 0.2, 0.6]), shapes.Capsule(0.15, 0.5), shapes.Cone(0.25, 0.4)):
+        p0 = rng.uniform(-1, 1, (400, 3))
+        p0 = p0[shape.distance(p0) > 2 * TH]
+        p1 = rng.uniform(-0.3, 0.3, (len(p0), 3))
+        s = shape.sweep(p0, p1, TH)
+        hit = np.isfinite(s)
+        assert hit.mean() > 0.3
+        q = p0[hit] + s[hit, None] * (p1[hit] - p0[hit])
+        phi = shape.distance(q)
+        assert np.all(phi >= TH * (1 - 1e-9))
+        assert np.mean(phi <= TH * (1 + shapes.SWEEP_TOLERANCE) + 1e-9) > 0.95
+        # nothing earlier on the path came within r (dense sampling of the misses and the hit paths)
+        u = np.linspace(0, 1, 200)
+        for k in np.flatnonzero(hit)[:50]:
+            pts = p0[k] + np.outer(u[u < s[k] * (1 - 1e-6)], p1[k] - p0[k])
+            assert np.all(shape.distance(pts) > TH * (1 - 1e-9))
+        for k in np.flatnonzero(~hit)[:50]:
+            assert np.all(shape.distance(p0[k] + np.outer(u, p1[k] - p0[k])) > TH * (1 - 1e-9))
+
+
+
+def test_sweep_matches_fcl_continuous_collision():
+    """fcl's conservative advancement (GJK solver), a sphere of radius r moving against each primitive.
+
+    fcl reports only paths that end in contact, and its sphere-box advancement
+    misses some of those (it returns 1.0): such paths are checked on our side only.
+    """
+    fcl = pytest.importorskip("fcl")
+    rng = np.random.default_rng(4)
+    cases = [
+        (shapes.Sphere(0.3), fcl.Sphere(0.3), np.zeros(3)),
+        (shapes.Box([0.4, 0.2, 0.6]), fcl.Box(0.4, 0.2, 0.6), np.zeros(3)),
+        (shapes.Capsule(0.15, 0.5), fcl.Capsule(0.15, 0.5), np.zeros(3)),
+        (shapes.Cone(0.25, 0.4), fcl.Cone(0.25, 0.4), np.array([0.0, 0.0, 0.2])),   # fcl's cone is centred
+    ]
+    req_args = dict(num_max_iterations=200, toc_err=1e-7, ccd_motion_type=fcl.CCDMotionType.CCDM_TRANS,
+                    gjk_solver_type=fcl.GJKSolverType.GST_INDEP,
+                    ccd_solver_type=fcl.CCDSolverType.CCDC_CONSERVATIVE_ADVANCEMENT)
+    compared = 0
+    for shape, geom, offset in cases:
+        obstacle = fcl.CollisionObject(geom, fcl.Transform(offset))
+        for _ in range(12):
+            d = rng.normal(size=3)
+            d /= np.linalg.norm(d)
+            p0 = 0.8 * d + rng.uniform(-0.05, 0.05, 3)
+            p1 = rng.uniform(-0.05, 0.05, 3) + offset         # ends inside: fcl reports only such hits
+            ours = shape.sweep(p0[None], p1[None], TH)[0]
+            probe = fcl.CollisionObject(fcl.Sphere(TH), fcl.Transform(p0))
+            toc = fcl.continuousCollide(probe, fcl.Transform(p1), obstacle, fcl.Transform(offset),
+                                        fcl.ContinuousCollisionRequest(**req_args), fcl.ContinuousCollisionResult())
+            if toc < 1.0:
+                assert ours == pytest.approx(toc, abs=2e-4)
+                compared += 1
+            else:   # fcl's sphere-box advancement misses some hits; ours is checked directly
+                assert shape.name == "box"
+                assert shape.distance((p0 + ours * (p1 - p0))[None])[0] == pytest.approx(TH, rel=2e-3)
+    assert compared >= 40
+
+
+def test_point_triangle_toi_against_dense_sampling():
+    rng = np.random.default_rng(5)
+    k = 300
+    a0, b0, c0 = (rng.uniform(-1, 1, (k, 3)) for _ in range(3))
+    a1, b1, c1 = (x + rng.uniform(-0.5, 0.5, (k, 3)) for x in (a0, b0, c0))
+    p0 = (a0 + b0 + c0) / 3 + rng.normal(size=(k, 3)) * 0.6
+    p1 = (a1 + b1 + c1) / 3 - (p0 - (a0 + b0 + c0) / 3) + rng.normal(size=(k, 3)) * 0.1
+    s, side = ccd.point_triangle_toi(p0, p1, a0, a1, b0, b1, c0, c1, tol=1e-6)
+    hit = np.isfinite(s)
+    assert 0.2 < hit.mean() < 1.0
+    # at the reported time the point lies in the triangle
+    lerp = lambda x0, x1, t: x0 + t[:, None] * (x1 - x0)  # noqa: E731
+    sh = s[hit]
+    q, _ = ccd.point_triangle_closest(lerp(p0[hit], p1[hit], sh), lerp(a0[hit], a1[hit], sh),
+                                      lerp(b0[hit], b1[hit], sh), lerp(c0[hit], c1[hit], sh))
+    assert np.max(np.linalg.norm(q - lerp(p0[hit], p1[hit], sh), axis=1)) < 1e-6
+    # sampling: the signed volume changes sign with the point inside only after the reported time
+    u = np.linspace(0, 1, 2001)
+    for i in range(k):
+        t = np.full(len(u), 0.0) + u
+        P, A, B, C = (lerp(np.repeat(x0[i:i + 1], len(u), 0), np.repeat(x1[i:i + 1], len(u), 0), t)
+                      for x0, x1 in ((p0, p1), (a0, a1), (b0, b1), (c0, c1)))
+        f = np.einsum("ij,ij->i", np.cross(B - A, C - A), P - A)
+        ch = np.flatnonzero(np.sign(f[:-1]) != np.sign(f[1:]))
+        if not len(ch):
+            assert not hit[i] or s[i] == 0.0
+            continue
+        qq, _ = ccd.point_triangle_closest(P[ch], A[ch], B[ch], C[ch])
+        inside = np.linalg.norm(qq - P[ch], axis=1) < 1e-2
+        if hit[i]:
+            assert u[ch[0]] - 1e-3 <= s[i] or not inside[: np.searchsorted(u[ch], s[i])].any()
+            assert np.any(np.abs(u[ch] - s[i]) < 1e-3)
+        else:
+            assert not np.any(np.linalg.norm(qq - P[ch], axis=1) < 1e-4)
+
+
+def test_edge_edge_toi_closed_form():
+    # edge along x at z = 1 - 2 s (falling), fixed edge along y at z = 0: they meet at s = 1/2
+    p0, q0 = np.array([[-1.0, 0.3, 1.0]]), np.array([[1.0, 0.3, 1.0]])
+    p1, q1 = p0 - [0, 0, 2], q0 - [0, 0, 2]
+    u, w = np.array([[0.2, -1.0, 0.0]]), np.array([[0.2, 1.0, 0.0]])
+    s, side = ccd.edge_edge_toi(p0, p1, q0, q1, u, u, w, w, tol=1e-9)
+    assert s[0] == pytest.approx(0.5, abs=1e-12)
+    n = np.cross(q0 - p0, w - u)[0]                      # the feature was on the -z side of the cloth edge
+    assert side[0] == np.sign(n @ (u[0] - p0[0]))
+    # shifted past the end of the fixed edge: a miss
+    s, _ = ccd.edge_edge_toi(p0 + [0, 2, 0], p1 + [0, 2, 0], q0 + [0, 2, 0], q1 + [0, 2, 0], u, u, w, w, tol=1e-9)
+    assert np.isinf(s[0])
+
+
+# --------------------------------------------------------------------------- cloth against obstacles
+DROPS = {
+    "sphere": ({"shape": "sphere", "radius": 0.2, "center": [0.0, 0.0, -0.2]}, (0.0, 0.0, 0.1)),
+    "box_edge": ({"shape": "box", "size": [0.4, 0.4, 0.3], "center": [0.2, 0.03, -0.15]}, (0.0, 0.0, 0.1)),
+    "cone_tip": ({"shape": "cone", "radius": 0.2, "height": 0.3, "center": [0.0, 0.0, -0.3]}, (0.0, 0.0, 0.1)),
+    "thin_plate": ({"shape": "box", "size": [0.8, 0.01, 0.3], "center": [0.0, 0.0, -0.15]}, (0.0, 0.0, 0.1)),
+}
+
+
+@pytest.mark.parametrize("dt", [1 / 60, 1 / 30], ids=["dt60", "dt30"])
+@pytest.mark.parametrize("name", list(DROPS))
+def test_dropped_cloth_never_enters_the_obstacle(name, dt):
+    obstacle, center = DROPS[name]
+    sim = ic.Simulator(cloth_scene(obstacle, dt=dt, duration=0.5, center=center))
+    traj = sim.run()
+    v_depth, e_depth = depths(sim, traj)
+    assert v_depth <= TOL and e_depth <= TOL, (v_depth, e_depth)
+    rep = traj.report["collision"]
+    assert rep["contacts"] > 0 and rep["max_penetration"] <= TOL
+    # the cloth came to rest on the obstacle: it did not fall through (nor far past it)
+    ob = sim.collider.obstacles[0]
+    top = ob.motion.to_world(np.array([[0.0, 0.0, shapes.local_aabb(ob.shape)[1][2]]]), 0.0)[0, 2]
+    assert traj.positions[-1][:, 2].max() > top - 0.05
+
+
+def test_report_has_collision_section_and_timing_column():
+    sim = ic.Simulator(cloth_scene(DROPS["sphere"][0], duration=0.3, res=8, center=(0, 0, 0.05)))
+    traj = sim.run()
+    rep = traj.report
+    assert "collision" in rep["effects"]
+    c = rep["collision"]
+    for key in ("contacts", "candidates", "max_penetration", "failsafe_steps", "time", "earliest_toi"):
+        assert key in c
+    assert c["candidates"] >= c["max_resting_contacts"] > 0
+    assert len(rep["frames"]["t_collision"]) == len(traj)
+    assert rep["timing"]["t_collision"] == pytest.approx(sum(rep["frames"]["t_collision"]))
+    assert sim.last_step.collision.t_collision >= 0
+
+
+def test_pinned_vertices_are_never_moved_by_a_collision():
+    # the pinned corner starts inside the sphere: it stays where the pin holds it
+    sc = cloth_scene({"shape": "sphere", "radius": 0.1, "center": [-0.3, 0.3, 0.1]}, res=8, duration=0.2,
+                     center=(0, 0, 0.1), pins=["top_left"])
+    sim = ic.Simulator(sc)
+    x0 = sim.positions[sim.model.pinned].copy()
+    sim.run()
+    assert np.array_equal(sim.positions[sim.model.pinned], x0)
+
+
+def test_explicit_integrator_is_kept_out_too():
+    sim = ic.Simulator(cloth_scene(DROPS["cone_tip"][0], dt=1 / 3000, duration=0.15, res=6,
+                                   center=(0, 0, 0.05)), integrator="symplectic_euler")
+    traj = sim.run(frame_rate=60)
+    v_depth, e_depth = depths(sim, traj)
+    assert v_depth <= TOL and e_depth <= TOL
+    assert traj.report["collision"]["contacts"] > 0
