@@ -338,3 +338,85 @@ def test_explicit_integrator_is_kept_out_too():
     v_depth, e_depth = depths(sim, traj)
     assert v_depth <= TOL and e_depth <= TOL
     assert traj.report["collision"]["contacts"] > 0
+
+
+# --------------------------------------------------------------------------- moving obstacles, rest, friction
+@pytest.mark.parametrize("dt", [1 / 60, 1 / 30], ids=["dt60", "dt30"])
+def test_fast_sphere_pushes_a_hanging_cloth_and_never_crosses_it(dt):
+    R = 0.12
+    sc = cloth_scene({"shape": "sphere", "radius": R, "center": [0.0, -0.3, 0.0], "velocity": [0.0, 5.0, 0.0]},
+                     dt=dt, duration=0.16, res=16, size=0.6, center=(0, 0, 0), plane="xz",
+                     pins=["top_left", "top_right"])
+    sim = ic.Simulator(sc)
+    traj = sim.run(frame_rate=1 / dt)                      # every step is a frame
+    v_depth, e_depth = depths(sim, traj)
+    assert v_depth <= TOL and e_depth <= TOL
+    ob = sim.collider.obstacles[0]
+    centers = np.array([ob.motion.pose(t)[0] for t in traj.times])
+    rel = traj.positions - centers[:, None, :]
+    ahead = rel[..., 1] > 0
+    off_axis = np.hypot(rel[..., 0], rel[..., 2])
+    # a vertex that goes from ahead of the sphere's centre to behind it in one step does so around
+    # the rim (off the axis by about the radius), never through the sphere's disc
+    passed = ahead[:-1] & ~ahead[1:]
+    assert np.all(np.minimum(off_axis[:-1], off_axis[1:])[passed] > 0.8 * R)
+    # pushed: the cloth's middle is carried ahead of the sphere, well past where it hung
+    mid = np.argmin(np.linalg.norm(sim.model.rest_positions, axis=1))
+    assert traj.positions[-1, mid, 1] > centers[-1, 1]
+    assert traj.positions[-1, mid, 1] > 0.5
+
+
+def test_resting_drape_on_a_sphere_settles_without_jitter():
+    sc = cloth_scene({"shape": "sphere", "radius": 0.2, "center": [0.0, 0.0, -0.2]}, dt=1 / 60, duration=2.0,
+                     res=16, center=(0, 0, 0.05), friction=0.3)
+    sim = ic.Simulator(sc)
+    traj = sim.run(frame_rate=10)
+    v_depth, e_depth = depths(sim, traj)
+    assert v_depth <= TOL and e_depth <= TOL
+    f = traj.report["frames"]
+    late = np.asarray(f["time"]) >= 1.5 - 1e-9
+    total = np.asarray(f["total"])[late]
+    # energy no longer rises: over the last half second it stays within 0.1 % of what the drop released
+    released = f["total"][0] - total[-1]
+    assert released > 0.1
+    assert np.max(total) - total[0] < 1e-3 * released
+    assert np.max(np.asarray(f["kinetic"])[late]) < 1e-6
+    assert np.linalg.norm(sim.velocities, axis=1).max() < 1e-3      # m/s
+    assert traj.report["collision"]["max_resting_contacts"] > 20
+    # it rests on the sphere (not slid off): the middle sits on the top
+    mid = np.argmin(np.linalg.norm(sim.model.rest_positions[:, :2], axis=1))
+    assert sim.positions[mid, 2] == pytest.approx(TH, abs=0.01)
+
+
+@pytest.mark.parametrize("tan", [0.3, 0.45, 0.55, 0.8])
+def test_friction_on_a_tilted_plane_holds_below_and_slides_above_the_friction_angle(tan):
+    """Cloth resting on a plane under gravity tilted by theta, Coulomb coefficient mu = 0.5.
+
+    Static when tan(theta) < mu; above, backward Euler slides it by the discrete
+    constant-acceleration distance a h^2 n (n + 1) / 2, a = g (sin theta - mu cos theta).
+    """
+    mu, T, h, g = 0.5, 0.5, 1 / 60, 9.81
+    th = np.arctan(tan)
+    sc = cloth_scene({"shape": "plane", "point": [0, 0, 0], "normal": [0, 0, 1]}, dt=h, duration=T, res=8,
+                     size=0.3, center=(0, 0, TH), friction=mu, gravity=(g * np.sin(th), 0.0, -g * np.cos(th)))
+    sc["effects"].pop("drag")
+    sim = ic.Simulator(sc)
+    x0 = sim.positions.copy()
+    sim.run()
+    d = (sim.positions - x0).mean(axis=0)
+    n = round(T / h)
+    a = max(0.0, g * (np.sin(th) - mu * np.cos(th)))
+    assert d[0] == pytest.approx(a * h * h * n * (n + 1) / 2, abs=1e-9 + 1e-3 * abs(a))
+    assert np.allclose(sim.positions[:, 2], TH, atol=1e-9)      # kept on the surface, at the thickness
+
+
+def test_tilted_plane_obstacle_normal_and_restitution():
+    """A vertex dropped on a plane with restitution e leaves with e times its normal speed."""
+    sc = cloth_scene({"shape": "plane", "point": [0, 0, 0], "normal": [0, 0, 1]}, dt=1 / 100, duration=0.05,
+                     res=2, size=0.01, center=(0, 0, 0.02), gravity=(0, 0, 0), collision={"restitution": 0.5})
+    sc["effects"].pop("drag")
+    sc["cloth"]["velocity"] = [0.0, 0.0, -2.0]
+    sim = ic.Simulator(sc)
+    sim.step(2)                                               # hits within the second step
+    assert np.allclose(sim.velocities[:, 2], 1.0)
+    assert np.all(sim.positions[:, 2] >= TH - 1e-12)
