@@ -371,6 +371,9 @@ def _obstacles(value: Any) -> list[dict[str, Any]]:
             raise _fail(path, "must be a table", d)
         if "shape" not in d:
             raise SceneError(f"{path}.shape: missing (one of {', '.join(OBSTACLE_SHAPES)})")
+        if d["shape"] == "mesh":
+            raise _fail(f"{path}.shape", "mesh obstacles are not implemented yet (use sphere, box, cone, "
+                        "capsule or plane)", d["shape"])
         shape = _choice(f"{path}.shape", d["shape"], OBSTACLE_SHAPES)
         _check_keys(path, d, _OBSTACLE_COMMON + OBSTACLE_SHAPES[shape])
         o: dict[str, Any] = {"shape": shape}

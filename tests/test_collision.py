@@ -92,6 +92,7 @@ def test_obstacle_defaults_and_effects_list():
                                                                "and <= 1, got 1.5"),
     ([], {"thickness": 0.01}, "collision: given, but the scene has no [[obstacles]]"),
     ({"shape": "sphere"}, None, "obstacles: must be an array of tables"),
+    ([{"shape": "mesh", "path": "bunny.obj"}], None, "obstacles[0].shape: mesh obstacles are not implemented yet"),
 ])
 def test_bad_obstacle_keys_name_the_path(obstacles, collision, message):
     d = {"cloth": {"mass": 0.1}, "obstacles": obstacles}
@@ -420,3 +421,53 @@ def test_tilted_plane_obstacle_normal_and_restitution():
     sim.step(2)                                               # hits within the second step
     assert np.allclose(sim.velocities[:, 2], 1.0)
     assert np.all(sim.positions[:, 2] >= TH - 1e-12)
+
+
+def test_readme_collision_block_is_valid_and_runs(tmp_path):
+    """The annotated [[obstacles]] / [collision] block of README.md loads and runs with a cloth."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = next(b for b in re.findall(r"```toml\n(.*?)```", text, re.S) if "[[obstacles]]" in b)
+    path = tmp_path / "c.toml"
+    path.write_text('[cloth]\nmass = 0.1\nresolution = [6, 6]\ncenter = [0.0, 0.0, 1.0]\nplane = "xy"\n'
+                    '[effects]\ngravity = [0.0, 0.0, -9.81]\n' + block)
+    scene = ic.load_scene(path)
+    assert [o["shape"] for o in scene.data["obstacles"]] == ["sphere", "box", "cone", "capsule", "plane"]
+    sim = ic.Simulator(scene)
+    sim.step(3)
+    assert len(sim.collider.obstacles) == 5
+
+
+def test_collision_benchmark_quick(tmp_path):
+    """The benchmark's quick mode writes well-formed outputs (no time is asserted)."""
+    import json
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    subprocess.run([sys.executable, str(root / "benchmarks" / "collision.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    res = json.loads((tmp_path / "collision.json").read_text())
+    assert res["benchmark"] == "collision" and res["quick"] is True
+    assert [r["resolution"] for r in res["rows"]] == [8, 12]
+    for r in res["rows"]:
+        assert r["ms_step"] >= r["ms_collision"] >= 0 and r["resting_median"] > 0
+        assert r["max_penetration"] == 0.0
+    assert "| 12² |" in (tmp_path / "collision.md").read_text()
+
+
+def test_spinning_box_under_a_falling_cloth():
+    """Angular velocity: a bar spinning at 6 rad/s about the vertical catches a falling cloth, nothing enters it."""
+    sc = cloth_scene({"shape": "box", "size": [0.5, 0.08, 0.08], "center": [0.0, 0.0, -0.05],
+                      "angular_velocity": [0.0, 0.0, 6.0]}, dt=1 / 30, duration=0.4, res=12, center=(0, 0, 0.05),
+                     friction=0.3)
+    sim = ic.Simulator(sc)
+    traj = sim.run(frame_rate=30)
+    v_depth, e_depth = depths(sim, traj)
+    assert v_depth <= TOL and e_depth <= TOL
+    assert traj.report["collision"]["contacts"] > 0
+    # friction drags the cloth round with the bar: it gains angular momentum about the bar's axis
+    x, v = sim.positions, sim.velocities
+    lz = float(np.sum(sim.model.masses * (x[:, 0] * v[:, 1] - x[:, 1] * v[:, 0])))
+    assert lz > 0

@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from . import ccd
 from .response import impulse, spread
@@ -355,11 +356,10 @@ class Collider:
             return xc, n_loc @ R.T, np.zeros_like(xc)
         xc = np.empty_like(q)
         n_w = np.empty_like(q)
-        if np.any(mo.angular_velocity):
-            for j in range(len(q)):   # rare: rotating obstacle, per-contact rotation matrix
-                c, R = mo.pose(float(tc[j]))
-                xc[j], n_w[j] = R @ q[j], R @ n_loc[j]
-                xc[j] += c
+        if np.any(mo.angular_velocity):   # one rotation per contact time
+            R = Rotation.from_rotvec(tc[:, None] * mo.angular_velocity).as_matrix() @ mo.rotation
+            xc = np.einsum("kij,kj->ki", R, q) + mo.center + tc[:, None] * mo.velocity
+            n_w = np.einsum("kij,kj->ki", R, n_loc)
         else:
             _, R = mo.pose(0.0)
             xc = q @ R.T + mo.center + tc[:, None] * mo.velocity
