@@ -71,6 +71,7 @@ OBSTACLE_SHAPES: dict[str, tuple[str, ...]] = {
     "cone": ("radius", "height", "center", "axis"),
     "capsule": ("radius", "height", "center", "axis"),
     "plane": ("point", "normal"),
+    "mesh": ("path", "scale", "translation", "rotation"),
 }
 _OBSTACLE_COMMON = ("shape", "velocity", "angular_velocity", "friction")
 _COLLISION_KEYS = ("thickness", "restitution", "max_iterations")
@@ -360,7 +361,53 @@ def _direction(path: str, value: Any) -> list[float]:
     return vec
 
 
-def _obstacles(value: Any) -> list[dict[str, Any]]:
+def _obstacle_mesh(path: str, d: Mapping[str, Any], base_dir: Path | None) -> dict[str, Any]:
+    """A mesh obstacle's file (read with trimesh), scale, translation and rotation."""
+    if "path" not in d:
+        raise SceneError(f"{path}.path: missing (a mesh obstacle needs the path of a mesh file)")
+    f = d["path"]
+    if not isinstance(f, str) or not f:
+        raise _fail(f"{path}.path", "must be a path to a mesh file", f)
+    p = Path(f)
+    if not p.is_absolute() and base_dir is not None:
+        p = base_dir / p
+    if not p.is_file():
+        raise _fail(f"{path}.path", "file not found", f)
+    load_obstacle_mesh(str(p), f"{path}.path", f)
+    return {
+        "path": str(p),
+        "scale": _number(f"{path}.scale", d.get("scale", 1.0), lo=0.0, lo_open=True),
+        "translation": _vector(f"{path}.translation", d.get("translation", [0.0, 0.0, 0.0]), 3),
+        "rotation": _vector(f"{path}.rotation", d.get("rotation", [0.0, 0.0, 0.0]), 3),
+    }
+
+
+def load_obstacle_mesh(file: str, key: str = "obstacles.path", given: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (V, 3) and triangles (F, 3) of a mesh obstacle's file, read with trimesh (merged vertices).
+
+    Raises
+    ------
+    SceneError
+        Naming ``key``: unreadable file, no triangles, non-finite coordinates.
+    """
+    import trimesh  # deferred: only mesh obstacles need it
+
+    given = file if given is None else given
+    try:
+        m = trimesh.load(file, force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many types for bad files
+        raise _fail(key, f"cannot read mesh file ({type(exc).__name__}: {' '.join(str(exc).split())})",
+                    given) from None
+    faces = np.asarray(getattr(m, "faces", np.zeros((0, 3))))
+    verts = np.asarray(getattr(m, "vertices", np.zeros((0, 3))), dtype=float)
+    if faces.ndim != 2 or len(faces) == 0 or faces.shape[1] != 3:
+        raise _fail(key, "mesh has no triangles", given)
+    if not np.isfinite(verts).all():
+        raise _fail(key, "mesh has non-finite coordinates", given)
+    return verts, faces.astype(np.int64)
+
+
+def _obstacles(value: Any, base_dir: Path | None = None) -> list[dict[str, Any]]:
     """The ``[[obstacles]]`` array: one table per rigid obstacle (see :data:`OBSTACLE_SHAPES`)."""
     if not _is_list(value):
         raise _fail("obstacles", "must be an array of tables ([[obstacles]])", value)
@@ -371,9 +418,6 @@ def _obstacles(value: Any) -> list[dict[str, Any]]:
             raise _fail(path, "must be a table", d)
         if "shape" not in d:
             raise SceneError(f"{path}.shape: missing (one of {', '.join(OBSTACLE_SHAPES)})")
-        if d["shape"] == "mesh":
-            raise _fail(f"{path}.shape", "mesh obstacles are not implemented yet (use sphere, box, cone, "
-                        "capsule or plane)", d["shape"])
         shape = _choice(f"{path}.shape", d["shape"], OBSTACLE_SHAPES)
         _check_keys(path, d, _OBSTACLE_COMMON + OBSTACLE_SHAPES[shape])
         o: dict[str, Any] = {"shape": shape}
@@ -387,7 +431,9 @@ def _obstacles(value: Any) -> list[dict[str, Any]]:
                 raise SceneError(f"{path}.size: missing (a box needs its full extents [x, y, z] in m)")
             o["size"] = _vector(f"{path}.size", d["size"], 3, positive=True)
             o["rotation"] = _vector(f"{path}.rotation", d.get("rotation", [0.0, 0.0, 0.0]), 3)
-        if shape == "plane":
+        if shape == "mesh":
+            o.update(_obstacle_mesh(path, d, base_dir))
+        elif shape == "plane":
             o["point"] = _vector(f"{path}.point", d.get("point", [0.0, 0.0, 0.0]), 3)
             o["normal"] = _direction(f"{path}.normal", d.get("normal", [0.0, 0.0, 1.0]))
         else:
@@ -449,7 +495,7 @@ class Scene:
             "solver": _solver(data.get("solver", {})),
             "cloth": _cloth(data["cloth"], self.base_dir),
             "effects": _effects(data.get("effects", {})),
-            "obstacles": _obstacles(data.get("obstacles", [])),
+            "obstacles": _obstacles(data.get("obstacles", []), self.base_dir),
         }
         if "collision" in data and not out["obstacles"]:
             raise SceneError("collision: given, but the scene has no [[obstacles]] to collide with")

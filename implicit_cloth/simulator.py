@@ -142,6 +142,8 @@ class Simulator:
         self.model.set_pin_anchors(x, self.state.t)
         self.state = State(x, self.state.v.copy(), self.state.t)
         self.integrator.reset()
+        if self.collider is not None:
+            self.collider.reset()
 
     @property
     def velocities(self) -> np.ndarray:
@@ -155,6 +157,8 @@ class Simulator:
         self.model.apply_pins(x, v, self.state.t)
         self.state = State(x, v, self.state.t)
         self.integrator.reset()
+        if self.collider is not None:
+            self.collider.reset()
 
     @property
     def time(self) -> float:

@@ -80,7 +80,7 @@ def test_obstacle_defaults_and_effects_list():
     ([{"shape": "sphere"}], None, "obstacles[0].radius: missing"),
     ([{"shape": "sphere", "radius": -1}], None, "obstacles[0].radius: must be a finite number > 0, got -1"),
     ([{"shape": "spere", "radius": 1}], None, "obstacles[0].shape: must be one of sphere, box, cone, capsule, "
-                                              "plane (did you mean 'sphere'?), got 'spere'"),
+                                              "plane, mesh (did you mean 'sphere'?), got 'spere'"),
     ([{"shape": "box", "size": [1, 1]}], None, "obstacles[0].size: must be a list of 3 numbers"),
     ([{"shape": "sphere", "radius": 1}, {"shape": "cone", "radius": 1, "height": 1, "axis": [0, 0, 0]}], None,
      "obstacles[1].axis: must be a non-zero direction, got [0, 0, 0]"),
@@ -92,7 +92,6 @@ def test_obstacle_defaults_and_effects_list():
                                                                "and <= 1, got 1.5"),
     ([], {"thickness": 0.01}, "collision: given, but the scene has no [[obstacles]]"),
     ({"shape": "sphere"}, None, "obstacles: must be an array of tables"),
-    ([{"shape": "mesh", "path": "bunny.obj"}], None, "obstacles[0].shape: mesh obstacles are not implemented yet"),
 ])
 def test_bad_obstacle_keys_name_the_path(obstacles, collision, message):
     d = {"cloth": {"mass": 0.1}, "obstacles": obstacles}
@@ -471,3 +470,85 @@ def test_spinning_box_under_a_falling_cloth():
     x, v = sim.positions, sim.velocities
     lz = float(np.sum(sim.model.masses * (x[:, 0] * v[:, 1] - x[:, 1] * v[:, 0])))
     assert lz > 0
+
+
+# --------------------------------------------------------------------------- mesh obstacles
+def _mesh_file(tmp_path, mesh: trimesh.Trimesh, name: str = "obstacle.obj") -> str:
+    path = tmp_path / name
+    mesh.export(str(path))
+    return str(path)
+
+
+def _convex_depth(mesh: trimesh.Trimesh, positions: np.ndarray, edges: np.ndarray, samples: int = 9) -> float:
+    """Largest depth of a cloth vertex or edge point inside a convex mesh (face planes), m."""
+    s = np.linspace(0.0, 1.0, samples)
+    pe = (positions[edges[:, 0], None] * (1 - s)[None, :, None]
+          + positions[edges[:, 1], None] * s[None, :, None]).reshape(-1, 3)
+    sd = pe @ mesh.face_normals.T - np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles[:, 0])
+    return float(max(0.0, np.max(-sd.max(axis=1))))
+
+
+MESHES = {
+    "icosphere": (lambda: trimesh.creation.icosphere(subdivisions=3, radius=0.2), [0.0, 0.0, -0.2]),
+    "box_edge": (lambda: trimesh.creation.box(extents=[0.4, 0.4, 0.3]), [0.2, 0.03, -0.15]),
+    "cone_tip": (lambda: trimesh.creation.cone(radius=0.2, height=0.3, sections=32), [0.0, 0.0, -0.3]),
+}
+
+
+@pytest.mark.parametrize("dt", [1 / 60, 1 / 30], ids=["dt60", "dt30"])
+@pytest.mark.parametrize("name", list(MESHES))
+def test_cloth_dropped_on_a_mesh_obstacle_never_enters_it(tmp_path, name, dt):
+    make, translation = MESHES[name]
+    mesh = make()
+    path = _mesh_file(tmp_path, mesh)
+    sim = ic.Simulator(cloth_scene({"shape": "mesh", "path": path, "translation": translation}, dt=dt,
+                                   duration=0.5, center=(0.0, 0.0, 0.1)))
+    traj = sim.run()
+    placed = trimesh.Trimesh(mesh.vertices + translation, mesh.faces)
+    depth = max(_convex_depth(placed, x, sim.collider.edges) for x in traj.positions)
+    assert depth <= TOL
+    rep = traj.report["collision"]
+    assert rep["contacts"] > 0 and rep["obstacles"] == ["mesh"]
+    assert traj.positions[-1][:, 2].max() > placed.bounds[1, 2] - 0.05      # resting on it, not fallen through
+
+
+def test_open_mesh_is_two_sided(tmp_path):
+    """A single square (an open mesh): a cloth dropped on it never passes through it, from either side."""
+    square = trimesh.Trimesh([[-0.2, -0.2, 0.0], [0.2, -0.2, 0.0], [0.2, 0.2, 0.0], [-0.2, 0.2, 0.0]],
+                             [[0, 1, 2], [0, 2, 3]])
+    path = _mesh_file(tmp_path, square)
+    for z, g in ((0.05, -9.81), (-0.05, 9.81)):          # from above with gravity down, from below with it up
+        sim = ic.Simulator(cloth_scene({"shape": "mesh", "path": path}, dt=1 / 30, duration=0.4, res=12,
+                                       center=(0.0, 0.0, z), gravity=(0.0, 0.0, g)))
+        traj = sim.run(frame_rate=30)
+        x = traj.positions
+        inside = (np.abs(x[..., 0]) < 0.2) & (np.abs(x[..., 1]) < 0.2)
+        flipped = inside[:-1] & inside[1:] & (np.sign(x[:-1, :, 2]) != np.sign(x[1:, :, 2]))
+        assert not flipped.any()
+        assert np.all(np.sign(x[-1][inside[-1], 2]) == np.sign(z))
+        assert traj.report["collision"]["contacts"] > 0
+
+
+def test_mesh_obstacle_keys(tmp_path):
+    path = _mesh_file(tmp_path, trimesh.creation.icosphere(subdivisions=1))
+    sc = ic.Scene.from_dict({"cloth": {"mass": 0.1}, "obstacles": [{"shape": "mesh", "path": "obstacle.obj",
+                                                                   "scale": 2.0}]}, base_dir=tmp_path)
+    ob = sc.data["obstacles"][0]
+    assert ob["path"] == path and ob["scale"] == 2.0 and ob["translation"] == [0.0, 0.0, 0.0]
+    for bad, msg in (({"shape": "mesh"}, "obstacles[0].path: missing"),
+                     ({"shape": "mesh", "path": "nope.obj"}, "obstacles[0].path: file not found, got 'nope.obj'"),
+                     ({"shape": "mesh", "path": path, "radius": 1.0}, "obstacles[0].radius: unknown key"),
+                     ({"shape": "mesh", "path": path, "scale": 0}, "obstacles[0].scale: must be a finite number > 0")):
+        with pytest.raises(ic.SceneError) as err:
+            ic.Scene.from_dict({"cloth": {"mass": 0.1}, "obstacles": [bad]}, base_dir=tmp_path)
+        assert msg in str(err.value)
+
+
+def test_assigning_the_state_forgets_resting_contacts():
+    sim = ic.Simulator(cloth_scene({"shape": "plane"}, res=6, center=(0, 0, TH)))
+    sim.step(3)
+    assert len(sim.collider.contact_idx) > 0
+    sim.positions = sim.positions + [0.0, 0.0, 0.5]
+    assert len(sim.collider.contact_idx) == 0
+    sim.step(1)
+    assert sim.last_step.collision.resting == 0

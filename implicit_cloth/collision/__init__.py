@@ -44,9 +44,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import ccd
+from . import broadphase, ccd
 from .response import impulse, spread
-from .shapes import Motion, Plane, Shape, build, local_aabb
+from .shapes import MeshShape, Motion, Plane, Shape, build, local_aabb
 
 #: A vertex path that comes within this fraction of the thickness counts as an impact.
 IMPACT_FRACTION = 0.5
@@ -179,6 +179,14 @@ class Collider:
         self._constrained = np.zeros(0, dtype=np.int64)
         self._n = n
 
+    def reset(self) -> None:
+        """Forget the resting contacts (called when the state is assigned)."""
+        self.contact_idx = np.zeros(0, dtype=np.int64)
+        self.contact_n = np.zeros((0, 3))
+        self.contact_un = np.zeros(0)
+        self.contact_obstacle = np.zeros(0, dtype=np.int64)
+        self._constrained = np.zeros(0, dtype=np.int64)
+
     # ------------------------------------------------------------------ before the solve
     def constrain(self, integrator: Any, state: Any) -> int:
         """Put the resting contacts into an implicit integrator's filter (no-op for explicit ones).
@@ -290,6 +298,8 @@ class Collider:
         return np.all((lo <= b + margin) & (hi >= a - margin), axis=1)
 
     def _round(self, ob: Obstacle, x0, x, v, t0, t1, h, info: CollisionInfo):
+        if isinstance(ob.shape, MeshShape):
+            return self._mesh_round(ob, x0, x, v, t0, t1, h)
         th = self.thickness
         mo, shape = ob.motion, ob.shape
         busy, contacts, cand = False, 0, 0
@@ -490,80 +500,245 @@ class Collider:
                 continue
             pr = near[kj]
             cand += len(pr)
-            A0, A1 = q0[pr], q1[pr]
-            if kind == "vf":
-                f = feats[fi]
-                s, side = ccd.point_triangle_toi(f, f, A0[:, 0], A1[:, 0], A0[:, 1], A1[:, 1],
-                                                 A0[:, 2], A1[:, 2], tol)
-            else:
-                e0, e1 = feats[fi, 0], feats[fi, 1]
-                s, side = ccd.edge_edge_toi(A0[:, 0], A1[:, 0], A0[:, 1], A1[:, 1], e0, e0, e1, e1, tol)
-            hit = np.isfinite(s)
-            # (d1) crossings in this step: an inelastic impulse at the time of impact, applied to the
-            # primitive's motion over the whole step (x = x0 + h v), along the normal oriented to the
-            # side the cloth came from; a later round's proximity test then keeps it at the thickness
-            if np.any(hit):
-                hi_ = np.flatnonzero(hit)
-                sh = s[hi_, None, None]
-                As = A0[hi_] + sh * (A1[hi_] - A0[hi_])
-                if kind == "vf":
-                    _, ws = ccd.point_triangle_closest(f[hi_], As[:, 0], As[:, 1], As[:, 2])
-                    ns = np.cross(As[:, 1] - As[:, 0], As[:, 2] - As[:, 0])
-                else:
-                    a_s, _ = ccd.segment_closest(As[:, 0], As[:, 1], e0[hi_], e1[hi_])
-                    ws = np.column_stack([1.0 - a_s, a_s])
-                    ns = np.cross(As[:, 1] - As[:, 0], e1[hi_] - e0[hi_])
-                nns = np.sqrt(np.einsum("ij,ij->i", ns, ns))
-                ok = (nns > 1e-14) & (side[hi_] != 0)
-                dh = -side[hi_, None] * ns / np.where(ok, nns, 1.0)[:, None]
-                # from the time of impact, every vertex of the primitive stops approaching along dh
-                # (relative to the obstacle, with its mean velocity over the step):
-                # the primitive's point then cannot approach either, and no vertex is levered
-                # away (an impulse at the point, shared by weights, throws an already stopped
-                # vertex off the surface)
-                vrel = (A1[hi_] - A0[hi_]) / h                                  # (K, m, 3), local
-                vn = np.einsum("kmj,kj->km", vrel, dh)
-                app = ok[:, None] & (vn < 0) & (ws > 1e-3)
-                if np.any(app):
-                    k_, m_ = np.nonzero(app)
-                    vid = prims[pr[hi_[k_]], m_]
-                    dv = (-vn[k_, m_, None] * dh[k_]) @ R1.T
-                    dv *= (self.inv_mass[vid] > 0)[:, None]
-                    best = np.zeros((self._n, 3))
-                    when = np.zeros(self._n)
-                    # one change per vertex: the largest requested (they share a direction locally),
-                    # applied from the time of impact: x = x(s) + (1 - s) h v'
-                    mag = np.sqrt(np.einsum("ij,ij->i", dv, dv))
-                    order = np.argsort(mag)
-                    best[vid[order]] = dv[order]
-                    when[vid[order]] = s[hi_[k_]][order]
-                    x += (h * (1.0 - when))[:, None] * best
-                    v += best
-                    nw = dh[k_] @ R1.T
-                    self._record(vid, nw, np.einsum("ij,ij->i", mo.point_velocity(x[vid], t1), nw))
-                    busy = True
-                    contacts += int(np.any(app, axis=1).sum())
-            if kind == "ee":      # without a crossing, edges are kept out by the distance along them (step e)
-                continue
-            # (d2) proximity: a corner nearer than the thickness pushes the triangle away along the gap
-            p1 = mo.to_local(x, t1)[prims[pr]]
-            qc, w = ccd.point_triangle_closest(f, p1[:, 0], p1[:, 1], p1[:, 2])
-            gap = qc - f
-            dist = np.sqrt(np.einsum("ij,ij->i", gap, gap))
-            act = ~hit & (dist < th) & (dist > 1e-12)
-            if not np.any(act):
-                continue
-            d = gap[act] / dist[act, None]
-            deficit = th - dist[act]
-            idx = prims[pr[act]]
-            wa = w[act]
-            change, _ = spread(self._n, idx, wa, self.inv_mass, (deficit[:, None] * d) @ R1.T)
-            x += change
-            # velocity: the triangle's vertices stop approaching the feature
-            self._stop_approach(idx, wa, d @ R1.T, mo.point_velocity(f[act] @ R1.T + c1, t1), v)
-            contacts += int(act.sum())
-            busy |= bool(np.any(deficit > SETTLE_FRACTION * th))
+            b, k = self._feature_pairs(ob, kind, prims, q0, q1, pr, fi, feats, x0, x, v, t0, t1, h)
+            busy |= b
+            contacts += k
         return busy, cand, contacts
+
+    def _feature_pairs(self, ob: Obstacle, kind: str, prims: np.ndarray, q0: np.ndarray, q1: np.ndarray,
+                       pr: np.ndarray, fi: np.ndarray, feats: np.ndarray, x0, x, v, t0, t1, h,
+                       ee_proximity: bool = False) -> tuple[bool, int]:
+        """Exact tests and response for candidate pairs: obstacle point ``feats[fi]`` vs cloth triangle
+        ``prims[pr]`` (kind "vf") or obstacle edge ``feats[fi]`` vs cloth edge ``prims[pr]`` (kind "ee").
+
+        ``q0``, ``q1`` are the primitives' corners (K, m, 3) at the start and end, local frame.
+        """
+        th = self.thickness
+        mo = ob.motion
+        c1, R1 = mo.pose(t1)
+        tol = 0.1 * th
+        busy, contacts = False, 0
+        A0, A1 = q0[pr], q1[pr]
+        if kind == "vf":
+            f = feats[fi]
+            s, side = ccd.point_triangle_toi(f, f, A0[:, 0], A1[:, 0], A0[:, 1], A1[:, 1],
+                                             A0[:, 2], A1[:, 2], tol)
+        else:
+            e0, e1 = feats[fi, 0], feats[fi, 1]
+            s, side = ccd.edge_edge_toi(A0[:, 0], A1[:, 0], A0[:, 1], A1[:, 1], e0, e0, e1, e1, tol)
+        hit = np.isfinite(s)
+        # (d1) crossings in this step: an inelastic impulse at the time of impact, applied to the
+        # primitive's motion over the whole step (x = x0 + h v), along the normal oriented to the
+        # side the cloth came from; a later round's proximity test then keeps it at the thickness
+        if np.any(hit):
+            hi_ = np.flatnonzero(hit)
+            sh = s[hi_, None, None]
+            As = A0[hi_] + sh * (A1[hi_] - A0[hi_])
+            if kind == "vf":
+                _, ws = ccd.point_triangle_closest(f[hi_], As[:, 0], As[:, 1], As[:, 2])
+                ns = np.cross(As[:, 1] - As[:, 0], As[:, 2] - As[:, 0])
+            else:
+                a_s, _ = ccd.segment_closest(As[:, 0], As[:, 1], e0[hi_], e1[hi_])
+                ws = np.column_stack([1.0 - a_s, a_s])
+                ns = np.cross(As[:, 1] - As[:, 0], e1[hi_] - e0[hi_])
+            nns = np.sqrt(np.einsum("ij,ij->i", ns, ns))
+            ok = (nns > 1e-14) & (side[hi_] != 0)
+            dh = -side[hi_, None] * ns / np.where(ok, nns, 1.0)[:, None]
+            # from the time of impact, every vertex of the primitive stops approaching along dh
+            # (relative to the obstacle, with its mean velocity over the step):
+            # the primitive's point then cannot approach either, and no vertex is levered
+            # away (an impulse at the point, shared by weights, throws an already stopped
+            # vertex off the surface)
+            vrel = (A1[hi_] - A0[hi_]) / h                                  # (K, m, 3), local
+            vn = np.einsum("kmj,kj->km", vrel, dh)
+            app = ok[:, None] & (vn < 0) & (ws > 1e-3)
+            if np.any(app):
+                k_, m_ = np.nonzero(app)
+                vid = prims[pr[hi_[k_]], m_]
+                dv = (-vn[k_, m_, None] * dh[k_]) @ R1.T
+                dv *= (self.inv_mass[vid] > 0)[:, None]
+                best = np.zeros((self._n, 3))
+                when = np.zeros(self._n)
+                # one change per vertex: the largest requested (they share a direction locally),
+                # applied from the time of impact: x = x(s) + (1 - s) h v'
+                mag = np.sqrt(np.einsum("ij,ij->i", dv, dv))
+                order = np.argsort(mag)
+                best[vid[order]] = dv[order]
+                when[vid[order]] = s[hi_[k_]][order]
+                x += (h * (1.0 - when))[:, None] * best
+                v += best
+                nw = dh[k_] @ R1.T
+                self._record(vid, nw, np.einsum("ij,ij->i", mo.point_velocity(x[vid], t1), nw))
+                busy = True
+                contacts += int(np.any(app, axis=1).sum())
+        if kind == "ee":
+            if ee_proximity:   # meshes: no signed distance, so edges keep EDGE_FRACTION of the thickness here
+                b, k = self._edge_edge_proximity(ob, prims, pr, feats[fi, 0], feats[fi, 1], hit, side, x, v, t1)
+                busy |= b
+                contacts += k
+            # primitives: without a crossing, edges are kept out by the distance along them (step e)
+            return busy, contacts
+        # (d2) proximity: a corner nearer than the thickness pushes the triangle away along the gap
+        p1 = mo.to_local(x, t1)[prims[pr]]
+        qc, w = ccd.point_triangle_closest(f, p1[:, 0], p1[:, 1], p1[:, 2])
+        gap = qc - f
+        dist = np.sqrt(np.einsum("ij,ij->i", gap, gap))
+        # after a crossing in this step, along the triangle's normal turned to the side it came from
+        # (it may end touching, or still a little across); otherwise along the gap
+        nt = np.cross(p1[:, 1] - p1[:, 0], p1[:, 2] - p1[:, 0])
+        nn = np.sqrt(np.einsum("ij,ij->i", nt, nt))
+        crossed = hit & (side != 0) & (nn > 1e-14)
+        dd = np.zeros_like(gap)
+        dd[crossed] = -side[crossed, None] * nt[crossed] / nn[crossed, None]
+        plain = ~crossed & (dist > 1e-12)
+        dd[plain] = gap[plain] / dist[plain, None]
+        sep = np.einsum("ij,ij->i", gap, dd)
+        act = (crossed | plain) & (sep < th)
+        if not np.any(act):
+            return busy, contacts
+        d = dd[act]
+        deficit = th - sep[act]
+        idx = prims[pr[act]]
+        wa = w[act]
+        change, _ = spread(self._n, idx, wa, self.inv_mass, (deficit[:, None] * d) @ R1.T)
+        x += change
+        # velocity: the triangle's vertices stop approaching the feature
+        self._stop_approach(idx, wa, d @ R1.T, mo.point_velocity(f[act] @ R1.T + c1, t1), v)
+        contacts += int(act.sum())
+        busy |= bool(np.any(deficit > SETTLE_FRACTION * th))
+        return busy, contacts
+
+    def _edge_edge_proximity(self, ob: Obstacle, prims, pr, e0, e1, hit, side, x, v, t1) -> tuple[bool, int]:
+        """Cloth edges ``prims[pr]`` nearer than ``EDGE_FRACTION * thickness`` to obstacle edges ``e0 e1`` are pushed away.
+
+        Along the gap between the closest points; after a crossing in this step, along
+        ``(cloth edge) x (obstacle edge)`` turned to the side the cloth edge came from.
+        """
+        th = self.thickness
+        mo = ob.motion
+        c1, R1 = mo.pose(t1)
+        target = EDGE_FRACTION * th
+        p1 = mo.to_local(x, t1)[prims[pr]]
+        a, b = ccd.segment_closest(p1[:, 0], p1[:, 1], e0, e1)
+        gap = (p1[:, 0] + a[:, None] * (p1[:, 1] - p1[:, 0])) - (e0 + b[:, None] * (e1 - e0))
+        dist = np.sqrt(np.einsum("ij,ij->i", gap, gap))
+        nx = np.cross(p1[:, 1] - p1[:, 0], e1 - e0)
+        nn = np.sqrt(np.einsum("ij,ij->i", nx, nx))
+        crossed = hit & (side != 0) & (nn > 1e-14)
+        dd = np.zeros_like(gap)
+        dd[crossed] = -side[crossed, None] * nx[crossed] / nn[crossed, None]
+        plain = ~crossed & (dist > 1e-12)
+        dd[plain] = gap[plain] / dist[plain, None]
+        sep = np.einsum("ij,ij->i", gap, dd)
+        act = (crossed | plain) & (sep < target) & (a > 1e-6) & (a < 1 - 1e-6)
+        if not np.any(act):
+            return False, 0
+        d = dd[act]
+        idx = prims[pr[act]]
+        w = np.column_stack([1.0 - a[act], a[act]])
+        deficit = target - sep[act]
+        change, _ = spread(self._n, idx, w, self.inv_mass, (deficit[:, None] * d) @ R1.T)
+        x += change
+        g = (e0 + b[:, None] * (e1 - e0))[act] @ R1.T + c1
+        self._stop_approach(idx, w, d @ R1.T, mo.point_velocity(g, t1), v)
+        return bool(np.any(deficit > SETTLE_FRACTION * th)), int(act.sum())
+
+    # ------------------------------------------------------------------ mesh obstacles
+    def _mesh_round(self, ob: Obstacle, x0, x, v, t0, t1, h):
+        """One round against a mesh obstacle: fcl broad phase, then exact tests (vertex-face, edge-edge, corner-triangle)."""
+        th = self.thickness
+        mo, shape = ob.motion, ob.shape
+        q0 = mo.to_local(x0, t0)
+        q1 = mo.to_local(x, t1)
+        E, T = self.edges, self.faces
+        vn = np.flatnonzero(self._near(ob, q0, q1, th) & self.free)
+        en = np.flatnonzero(self._near(ob, q0[E], q1[E], th))
+        tn = np.flatnonzero(self._near(ob, q0[T], q1[T], th))
+        cand = broadphase.candidates(shape.bvh, q0, q1, vn, E[en], T[tn], th)
+        busy, contacts, ncand, s_min = False, 0, 0, np.inf
+        pv = [cand[k] for k in (broadphase.VERTEX_PATH, broadphase.VERTEX_BALL) if k in cand]
+        if pv:
+            pairs = np.unique(np.column_stack([np.concatenate([a for a, _ in pv]),
+                                               np.concatenate([b for _, b in pv])]), axis=0)
+            ncand += len(pairs)
+            b, k, sm = self._mesh_vertex_face(ob, pairs[:, 0], pairs[:, 1], q0, x, v, t0, t1, h)
+            busy |= b
+            contacts += k
+            s_min = min(s_min, sm)
+        if broadphase.EDGE_QUAD in cand:
+            ei, fi = cand[broadphase.EDGE_QUAD]
+            pairs = np.unique(np.column_stack([np.repeat(en[ei], 3), shape.face_edges[fi].ravel()]), axis=0)
+            ncand += len(pairs)
+            q1 = mo.to_local(x, t1)
+            b, k = self._feature_pairs(ob, "ee", E, q0[E], q1[E], pairs[:, 0], pairs[:, 1], shape.feature_edges,
+                                       x0, x, v, t0, t1, h, ee_proximity=True)
+            busy |= b
+            contacts += k
+        if broadphase.TRIANGLE in cand:
+            ti, fi = cand[broadphase.TRIANGLE]
+            pairs = np.unique(np.column_stack([np.repeat(tn[ti], 3), shape.faces[fi].ravel()]), axis=0)
+            ncand += len(pairs)
+            q1 = mo.to_local(x, t1)
+            b, k = self._feature_pairs(ob, "vf", T, q0[T], q1[T], pairs[:, 0], pairs[:, 1], shape.vertices,
+                                       x0, x, v, t0, t1, h)
+            busy |= b
+            contacts += k
+        return busy, s_min, ncand, contacts
+
+    def _mesh_vertex_face(self, ob: Obstacle, vi, fi, q0, x, v, t0, t1, h) -> tuple[bool, int, float]:
+        """Cloth vertices ``vi`` against mesh faces ``fi``: crossings stopped at the time of impact, then proximity.
+
+        A crossing (the exact point-triangle time of impact) puts the vertex ``thickness``
+        off the face on the side it came from and applies the impulse with friction
+        there; it moves on with its new velocity. A vertex ending nearer than
+        ``thickness`` to a face is pushed away along the gap (two-sided).
+        """
+        th = self.thickness
+        mo, shape = ob.motion, ob.shape
+        F, V = shape.faces[fi], shape.vertices
+        A, B, C = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+        P0, P1 = q0[vi], mo.to_local(x[vi], t1)
+        s, side = ccd.point_triangle_toi(P0, P1, A, A, B, B, C, C, 0.1 * th)
+        hit = np.isfinite(s) & (side != 0)
+        busy, contacts, s_min = False, 0, np.inf
+        if np.any(hit):
+            k = np.flatnonzero(hit)
+            k = k[np.argsort(s[k], kind="stable")]
+            _, first = np.unique(vi[k], return_index=True)
+            k = k[first]                                            # the earliest face per vertex
+            i = vi[k]
+            d = side[k, None] * shape.face_normals[fi[k]]           # from the face towards the vertex
+            pc = P0[k] + s[k, None] * (P1[k] - P0[k]) + th * d
+            tc = t0 + s[k] * h
+            xc, n_w, u = self._world_at(mo, pc, d, tc)
+            new, _ = impulse(v[i], u, n_w, ob.friction, self.restitution)
+            v[i] = new
+            x[i] = xc + ((1.0 - s[k]) * h)[:, None] * new
+            busy, contacts, s_min = True, len(i), float(s[k].min())
+        # proximity at the end of the step, nearest face per vertex
+        P1 = mo.to_local(x[vi], t1)
+        q, _ = ccd.point_triangle_closest(P1, A, B, C)
+        gap = P1 - q
+        dist = np.sqrt(np.einsum("ij,ij->i", gap, gap))
+        k = np.flatnonzero((dist < th) & (dist > 1e-12))
+        if len(k):
+            k = k[np.argsort(dist[k], kind="stable")]
+            _, first = np.unique(vi[k], return_index=True)
+            k = k[first]
+            i = vi[k]
+            d = gap[k] / dist[k, None]
+            push = th - dist[k]
+            c1, R1 = mo.pose(t1)
+            x[i] = (P1[k] + push[:, None] * d) @ R1.T + c1
+            n_w = d @ R1.T
+            u = mo.point_velocity(x[i], t1)
+            new, _ = impulse(v[i], u, n_w, ob.friction, self.restitution)
+            x[i] += h * (new - v[i]) - h * np.einsum("ij,ij->i", new - v[i], n_w)[:, None] * n_w
+            v[i] = new
+            self._record(i, n_w, np.einsum("ij,ij->i", u, n_w))
+            contacts += len(i)
+            busy |= bool(np.any(push > SETTLE_FRACTION * th))
+        return busy, contacts, s_min
 
     # ------------------------------------------------------------------ fail-safe and bookkeeping
     def _violations(self, x0, x, t0, t1) -> np.ndarray:
@@ -572,6 +747,16 @@ class Collider:
         th = self.thickness
         for ob in self.obstacles:
             p0, p1 = ob.motion.to_local(x0, t0), ob.motion.to_local(x, t1)
+            if isinstance(ob.shape, MeshShape):   # vertex paths still crossing a face
+                vn = np.flatnonzero(self._near(ob, p0, p1, th) & self.free)
+                cand = broadphase.candidates(ob.shape.bvh, p0, p1, vn, self.edges[:0], self.faces[:0], th)
+                if broadphase.VERTEX_PATH in cand:
+                    vi, fi = cand[broadphase.VERTEX_PATH]
+                    F = ob.shape.faces[fi]
+                    A, B, C = (ob.shape.vertices[F[:, j]] for j in range(3))
+                    s, _ = ccd.point_triangle_toi(p0[vi], p1[vi], A, A, B, B, C, C, 0.0)
+                    bad[vi[np.isfinite(s)]] = True
+                continue
             vid = np.flatnonzero(self._near(ob, p0, p1, th) & self.free)
             if len(vid):
                 s = ob.shape.sweep(p0[vid], p1[vid], IMPACT_FRACTION * th)
@@ -613,7 +798,12 @@ class Collider:
         best = np.full(len(idx), np.inf)
         owner = np.zeros(len(idx), dtype=np.int64)
         for k, ob in enumerate(self.obstacles):
-            d = ob.shape.distance(ob.motion.to_local(x0[idx], t0))
+            if isinstance(ob.shape, MeshShape):   # no signed distance: the nearest vertex of the mesh
+                p = ob.motion.to_local(x0[idx], t0)
+                d = np.min(np.linalg.norm(p[:, None, :] - ob.shape.vertices[None, ::max(1, len(ob.shape.vertices)
+                                                                                       // 256)], axis=2), axis=1)
+            else:
+                d = ob.shape.distance(ob.motion.to_local(x0[idx], t0))
             owner = np.where(d < best, k, owner)
             best = np.minimum(best, d)
         for k, ob in enumerate(self.obstacles):
@@ -630,6 +820,8 @@ class Collider:
         depth = 0.0
         taken = np.zeros(self._n, dtype=bool)
         for k, ob in enumerate(self.obstacles):
+            if isinstance(ob.shape, MeshShape):   # its contacts are recorded by the response (self._held)
+                continue
             p = ob.motion.to_local(x, t1)
             vid = np.flatnonzero(self._near(ob, p, p, CONTACT_BAND * th))
             if not len(vid):
