@@ -23,9 +23,17 @@ Anderson 2002, adapted to rigid obstacles):
       along the normal to ``thickness``; an approaching normal velocity is removed;
    d. sharp features: obstacle corners and tips against cloth triangles, obstacle
       edges against cloth edges, by the exact coplanarity time of impact
-      (:mod:`~implicit_cloth.collision.ccd`); a crossing is undone by moving the
-      cloth primitive back to the side it came from, to ``thickness`` away, and a
-      feature nearer than ``thickness`` pushes it out likewise.
+      (:mod:`~implicit_cloth.collision.ccd`); a crossing stops the primitive's
+      vertices approaching from the time of impact on, along the normal turned to
+      the side the cloth came from, and a feature nearer than ``thickness`` pushes
+      the primitive out (after a crossing, along that normal);
+   e. edges: no point of a cloth edge nearer than ``thickness / 2`` (the smallest
+      signed distance along it, by golden-section search on the convex shape).
+
+   Mesh obstacles (no signed distance) replace b, c and e by the exact tests of
+   cloth vertices against the faces that python-fcl's broad phase
+   (:mod:`~implicit_cloth.collision.broadphase`) proposes, and use every mesh
+   vertex and edge as a sharp feature in d (edge pairs also keep ``thickness / 2``).
 
    Rounds repeat until one finds nothing to correct, at most
    ``collision.max_iterations``. Vertices still in violation then are frozen to the
@@ -424,7 +432,7 @@ class Collider:
         """
         th = self.thickness
         mo, shape = ob.motion, ob.shape
-        c1, R1 = mo.pose(t1)
+        _, R1 = mo.pose(t1)
         p = mo.to_local(x, t1)
         q = p[self.edges]
         near = np.flatnonzero(self._near(ob, q, q, th))
@@ -433,7 +441,7 @@ class Collider:
         a0, a1 = q[near, 0], q[near, 1]
         d = a1 - a0
         a, phi = edge_minimum(shape, a0, a1)
-        phi, n_loc, c_loc = shape.closest(a0 + a[:, None] * d)
+        phi, n_loc, _ = shape.closest(a0 + a[:, None] * d)
         # kept at EDGE_FRACTION of the thickness (a smooth surface's sag between two vertices
         # at the thickness is left alone)
         target = EDGE_FRACTION * th
@@ -475,9 +483,7 @@ class Collider:
         th = self.thickness
         mo, shape = ob.motion, ob.shape
         busy, cand, contacts = False, 0, 0
-        c1, R1 = mo.pose(t1)
         fp, fe = shape.feature_points, shape.feature_edges
-        tol = 0.1 * th
         for kind in ("vf", "ee"):
             prims = self.faces if kind == "vf" else self.edges
             feats = fp if kind == "vf" else fe
