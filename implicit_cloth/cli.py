@@ -176,6 +176,12 @@ def _summary(traj: Trajectory, npz: Path, js: Path) -> str:
             f"solver       {s['preconditioner']} PCG, iterations mean {s['mean_iterations']:.1f} / "
             f"max {s['max_iterations']}, max residual {s['max_residual']:.3g} (tolerance {s['tolerance']:g}), "
             f"unconverged steps {s['unconverged_steps']}")
+    c = r.get("collision")
+    if c:
+        lines.append(
+            f"collision    {', '.join(c['obstacles'])}: {c['contacts']} contacts, {c['mean_candidates']:.0f} "
+            f"candidates/step, max penetration {c['max_penetration']:.3g} m, fail-safe steps {c['failsafe_steps']}, "
+            f"{1e3 * c['mean_time_per_step']:.1f} ms/step")
     status = r.get("status")
     lines.append(f"status       {status}" + (f" ({r['reason']})" if r.get("reason") else ""))
     lines.append(f"trajectory   {npz}")

@@ -592,3 +592,15 @@ def test_bdf2_with_obstacles():
     v_depth, e_depth = depths(sim, traj)
     assert v_depth <= TOL and e_depth <= TOL
     assert traj.report["collision"]["max_resting_contacts"] > 0
+
+
+def test_cli_summary_has_a_collision_line(tmp_path, capsys):
+    from implicit_cloth.cli import main
+
+    scene = tmp_path / "s.toml"
+    scene.write_text('[simulation]\nduration = 0.1\n[cloth]\nmass = 0.1\nresolution = [6, 6]\nplane = "xy"\n'
+                     'center = [0.0, 0.0, 0.02]\n[effects]\ngravity = [0.0, 0.0, -9.81]\n'
+                     '[[obstacles]]\nshape = "plane"\n')
+    assert main(["run", str(scene), "--out", str(tmp_path / "out")]) == 0
+    line = next(s for s in capsys.readouterr().out.splitlines() if s.startswith("collision"))
+    assert "plane:" in line and "max penetration 0 m" in line
