@@ -501,7 +501,7 @@ def _convex_depth(mesh: trimesh.Trimesh, positions: np.ndarray, edges: np.ndarra
 
 
 MESHES = {
-    "icosphere": (lambda: trimesh.creation.icosphere(subdivisions=3, radius=0.2), [0.0, 0.0, -0.2]),
+    "icosphere": (lambda: trimesh.creation.icosphere(subdivisions=2, radius=0.2), [0.0, 0.0, -0.2]),
     "box_edge": (lambda: trimesh.creation.box(extents=[0.4, 0.4, 0.3]), [0.2, 0.03, -0.15]),
     "cone_tip": (lambda: trimesh.creation.cone(radius=0.2, height=0.3, sections=32), [0.0, 0.0, -0.3]),
 }

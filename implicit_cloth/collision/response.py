@@ -25,6 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Corrections below this fraction of the thickness do not call for another response round.
+SETTLE_FRACTION = 0.02
+
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", a, b)
