@@ -159,7 +159,15 @@ def test_sweep_closed_forms_plane_sphere_cone_tip():
     # off-axis: |p0 + s d|^2 = (R + r)^2 solved by hand
     a, b = np.array([0.1, 0.2, 1.0]), np.array([0.1, 0.2, -1.0])
     z = np.sqrt((R + r) ** 2 - 0.05)
-    assert shapes.Sphere(R).sweep(a[None], b[None], r)[0] == pytest.approx((1.0 - z) / 2.0, rel=1e-12)
+    s = shapes.Sphere(R).sweep(a[None], b[None], r)[0]
+    assert s == pytest.approx((1.0 - z) / 2.0, rel=1e-12)
+    hit = a + s * (b - a)
+    _, n, c = shapes.Sphere(R).closest(hit[None])
+    assert np.allclose(n[0], hit / (R + r)) and np.allclose(c[0], R * hit / (R + r))
+    # the plane's normal and nearest point
+    s = shapes.Plane().sweep(p0, p1, r)[0]
+    _, n, c = shapes.Plane().closest(p0 + s * (p1 - p0))
+    assert np.allclose(n, [[0, 0, 1]]) and np.allclose(c, [[0.1, -0.2, 0.0]])
     # cone tip: a vertex falling onto the apex stops at H + r, with the normal straight up
     cone = shapes.Cone(0.25, 0.4)
     s = cone.sweep(np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, 0.0]]), r)[0]
