@@ -11,9 +11,10 @@ A nominal step of ``dt`` (``simulation.dt``) is taken as substeps of
   bound and relaxing does not fail the step);
 * it raises the total energy (kinetic + gravity + springs) by more than
   ``max_energy_growth x E_scale`` beyond the work the moving pins and the wind
-  did over it::
+  did over it and the energy the collision response added (``W_c``, the work
+  of moving obstacles less contact dissipation)::
 
-      E(t + h) - E(t) - h (P(t) + P(t + h)) / 2 > max_energy_growth * E_scale
+      E(t + h) - E(t) - h (P(t) + P(t + h)) / 2 - W_c > max_energy_growth * E_scale
 
   with ``P`` the power of the pins (:func:`~implicit_cloth.diagnostics.pin_power`)
   plus that of the wind on the drag (``sum_i c A_i w . v_i``) and ``E_scale``
@@ -150,7 +151,8 @@ class StepController:
         e1, eps1, p1 = self._measures(new)
         if eps1 is not None and np.any((eps1 > self.max_strain) & (eps1 > eps0)):
             failed.add("strain")
-        if e1 - e0 - 0.5 * h * (p0 + p1) > self.max_energy_growth * self.energy_scale:
+        external = 0.5 * h * (p0 + p1) + (info.collision.work if info.collision is not None else 0.0)
+        if e1 - e0 - external > self.max_energy_growth * self.energy_scale:
             failed.add("energy")
         return failed
 
@@ -187,6 +189,11 @@ class StepController:
             if "nonfinite" not in failed:                  # a criterion passed: retry on it again
                 self.suspended -= set(CRITERIA) - failed
             active = failed - self.suspended
+            retry = bool(active) and self.level < self.max_halvings
+            if info.collision is not None:   # collision figures: of accepted substeps; time of every attempt
+                if total.collision is None:
+                    total.collision = type(info.collision)()
+                total.collision.absorb(info.collision, accepted=not retry)
             if active:
                 if self.level < self.max_halvings:
                     self.stats.retries += 1

@@ -184,6 +184,12 @@ def _summary(traj: Trajectory, npz: Path, js: Path) -> str:
     if sl:
         lines.append(f"strain limit {sl['max_strain']:g}: {sl['springs_limited']} over-stretched springs in "
                      f"{sl['steps_limited']} steps, max strain after limiting {sl['max_strain_after']:.4g}")
+    c = r.get("collision")
+    if c:
+        lines.append(
+            f"collision    {', '.join(c['obstacles'])}: {c['contacts']} contacts, {c['mean_candidates']:.0f} "
+            f"candidates/step, max penetration {c['max_penetration']:.3g} m, fail-safe steps {c['failsafe_steps']}, "
+            f"{1e3 * c['mean_time_per_step']:.1f} ms/step")
     status = r.get("status")
     lines.append(f"status       {status}" + (f" ({r['reason']})" if r.get("reason") else ""))
     lines.append(f"trajectory   {npz}")

@@ -58,6 +58,11 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
             "total": kin + grav + spr, "max_strain": strain}
 
 
+def total_energy(model: Model, x: np.ndarray, v: np.ndarray) -> float:
+    """Kinetic + gravity + spring energy of a state, J (``measure(...)["total"]`` without the strain)."""
+    return model.kinetic_energy(v) + float(sum(model.potential_energy(x).values()))
+
+
 def energy_scale(model: Model, x: np.ndarray, v: np.ndarray, duration: float) -> float:
     """The energy scale ``E_scale`` of the divergence bound (module docstring), J."""
     e = measure(model, x, v)

@@ -59,7 +59,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "solver": {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "multigrid"},
 }
 
-_TOP_KEYS = ("simulation", "solver", "cloth", "effects")
+_TOP_KEYS = ("simulation", "solver", "cloth", "effects", "obstacles", "collision")
 _SIM_KEYS = ("integrator", "dt", "duration", "frame_rate", "divergence_factor", "adaptive", "strain_limit")
 _ADAPTIVE_KEYS = ("enabled", "max_halvings", "grow_after", "max_strain", "max_energy_growth", "retry_unconverged")
 #: [simulation.adaptive] defaults; ``enabled`` defaults to whether the integrator is implicit.
@@ -74,6 +74,18 @@ _CLOTH_KEYS = (
     "mass", "density", "pins", "material", "springs", "velocity",
 )
 _EFFECT_KEYS = ("gravity", "drag", "wind")
+#: Obstacle shapes and the keys each takes besides the common ones (velocity, angular_velocity, friction).
+OBSTACLE_SHAPES: dict[str, tuple[str, ...]] = {
+    "sphere": ("radius", "center"),
+    "box": ("size", "center", "rotation"),
+    "cone": ("radius", "height", "center", "axis"),
+    "capsule": ("radius", "height", "center", "axis"),
+    "plane": ("point", "normal"),
+    "mesh": ("path", "scale", "translation", "rotation"),
+}
+_OBSTACLE_COMMON = ("shape", "velocity", "angular_velocity", "friction")
+_COLLISION_KEYS = ("thickness", "restitution", "max_iterations")
+COLLISION_DEFAULTS: dict[str, Any] = {"thickness": 0.005, "restitution": 0.0, "max_iterations": 8}
 
 #: Largest grid (nx * ny vertices, 4096 x 4096): beyond it the arrays alone need tens of GB.
 MAX_VERTICES = 4096 * 4096
@@ -393,6 +405,111 @@ def _effects(d: Any) -> dict[str, Any]:
     return out
 
 
+def _direction(path: str, value: Any) -> list[float]:
+    vec = _vector(path, value, 3)
+    if not math.hypot(*vec) > 0:
+        raise _fail(path, "must be a non-zero direction", value)
+    return vec
+
+
+def _obstacle_mesh(path: str, d: Mapping[str, Any], base_dir: Path | None) -> dict[str, Any]:
+    """A mesh obstacle's file (read with trimesh), scale, translation and rotation."""
+    if "path" not in d:
+        raise SceneError(f"{path}.path: missing (a mesh obstacle needs the path of a mesh file)")
+    f = d["path"]
+    if not isinstance(f, str) or not f:
+        raise _fail(f"{path}.path", "must be a path to a mesh file", f)
+    p = Path(f)
+    if not p.is_absolute() and base_dir is not None:
+        p = base_dir / p
+    if not p.is_file():
+        raise _fail(f"{path}.path", "file not found", f)
+    load_obstacle_mesh(str(p), f"{path}.path", f)
+    return {
+        "path": str(p),
+        "scale": _number(f"{path}.scale", d.get("scale", 1.0), lo=0.0, lo_open=True),
+        "translation": _vector(f"{path}.translation", d.get("translation", [0.0, 0.0, 0.0]), 3),
+        "rotation": _vector(f"{path}.rotation", d.get("rotation", [0.0, 0.0, 0.0]), 3),
+    }
+
+
+def load_obstacle_mesh(file: str, key: str = "obstacles.path", given: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (V, 3) and triangles (F, 3) of a mesh obstacle's file, read with trimesh (merged vertices).
+
+    Raises
+    ------
+    SceneError
+        Naming ``key``: unreadable file, no triangles, non-finite coordinates.
+    """
+    import trimesh  # deferred: only mesh obstacles need it
+
+    given = file if given is None else given
+    try:
+        m = trimesh.load(file, force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many types for bad files
+        raise _fail(key, f"cannot read mesh file ({type(exc).__name__}: {' '.join(str(exc).split())})",
+                    given) from None
+    faces = np.asarray(getattr(m, "faces", np.zeros((0, 3))))
+    verts = np.asarray(getattr(m, "vertices", np.zeros((0, 3))), dtype=float)
+    if faces.ndim != 2 or len(faces) == 0 or faces.shape[1] != 3:
+        raise _fail(key, "mesh has no triangles", given)
+    if not np.isfinite(verts).all():
+        raise _fail(key, "mesh has non-finite coordinates", given)
+    return verts, faces.astype(np.int64)
+
+
+def _obstacles(value: Any, base_dir: Path | None = None) -> list[dict[str, Any]]:
+    """The ``[[obstacles]]`` array: one table per rigid obstacle (see :data:`OBSTACLE_SHAPES`)."""
+    if not _is_list(value):
+        raise _fail("obstacles", "must be an array of tables ([[obstacles]])", value)
+    out = []
+    for k, d in enumerate(value):
+        path = f"obstacles[{k}]"
+        if not isinstance(d, Mapping):
+            raise _fail(path, "must be a table", d)
+        if "shape" not in d:
+            raise SceneError(f"{path}.shape: missing (one of {', '.join(OBSTACLE_SHAPES)})")
+        shape = _choice(f"{path}.shape", d["shape"], OBSTACLE_SHAPES)
+        _check_keys(path, d, _OBSTACLE_COMMON + OBSTACLE_SHAPES[shape])
+        o: dict[str, Any] = {"shape": shape}
+        for key in ("radius", "height"):
+            if key in OBSTACLE_SHAPES[shape]:
+                if key not in d:
+                    raise SceneError(f"{path}.{key}: missing (a {shape} needs its {key} in m)")
+                o[key] = _number(f"{path}.{key}", d[key], lo=0.0, lo_open=True)
+        if shape == "box":
+            if "size" not in d:
+                raise SceneError(f"{path}.size: missing (a box needs its full extents [x, y, z] in m)")
+            o["size"] = _vector(f"{path}.size", d["size"], 3, positive=True)
+            o["rotation"] = _vector(f"{path}.rotation", d.get("rotation", [0.0, 0.0, 0.0]), 3)
+        if shape == "mesh":
+            o.update(_obstacle_mesh(path, d, base_dir))
+        elif shape == "plane":
+            o["point"] = _vector(f"{path}.point", d.get("point", [0.0, 0.0, 0.0]), 3)
+            o["normal"] = _direction(f"{path}.normal", d.get("normal", [0.0, 0.0, 1.0]))
+        else:
+            o["center"] = _vector(f"{path}.center", d.get("center", [0.0, 0.0, 0.0]), 3)
+        if "axis" in OBSTACLE_SHAPES[shape]:
+            o["axis"] = _direction(f"{path}.axis", d.get("axis", [0.0, 0.0, 1.0]))
+        o["velocity"] = _vector(f"{path}.velocity", d.get("velocity", [0.0, 0.0, 0.0]), 3)
+        o["angular_velocity"] = _vector(f"{path}.angular_velocity", d.get("angular_velocity", [0.0, 0.0, 0.0]), 3)
+        o["friction"] = _number(f"{path}.friction", d.get("friction", 0.0), lo=0.0)
+        out.append(o)
+    return out
+
+
+def _collision(d: Any) -> dict[str, Any]:
+    _check_keys("collision", d, _COLLISION_KEYS)
+    out = dict(COLLISION_DEFAULTS)
+    if "thickness" in d:
+        out["thickness"] = _number("collision.thickness", d["thickness"], lo=0.0, lo_open=True)
+    if "restitution" in d:
+        out["restitution"] = _number("collision.restitution", d["restitution"], lo=0.0, hi=1.0)
+    if "max_iterations" in d:
+        out["max_iterations"] = _integer("collision.max_iterations", d["max_iterations"], lo=1, hi=1000)
+    return out
+
+
 # --------------------------------------------------------------------------- Scene
 class Scene:
     """A validated scene.
@@ -424,12 +541,17 @@ class Scene:
         _check_keys("", data, _TOP_KEYS)
         if "cloth" not in data:
             raise SceneError("cloth: missing (a scene needs a [cloth] table)")
-        return {
+        out = {
             "simulation": _simulation(data.get("simulation", {})),
             "solver": _solver(data.get("solver", {})),
             "cloth": _cloth(data["cloth"], self.base_dir),
             "effects": _effects(data.get("effects", {})),
+            "obstacles": _obstacles(data.get("obstacles", []), self.base_dir),
         }
+        if "collision" in data and not out["obstacles"]:
+            raise SceneError("collision: given, but the scene has no [[obstacles]] to collide with")
+        out["collision"] = _collision(data.get("collision", {})) if out["obstacles"] else None
+        return out
 
     def replace(self, **sections: Mapping[str, Any]) -> "Scene":
         """A new scene with some keys of some tables overridden, e.g. ``replace(simulation={"dt": 0.02})``."""
@@ -446,6 +568,8 @@ class Scene:
         """The names of the effects this scene declares, in evaluation order."""
         names = [k for k in ("gravity", "drag", "wind") if k in self.data["effects"]]
         names += [k for k in SPRING_KINDS if k in self.data["cloth"]["springs"]]
+        if self.data["obstacles"]:
+            names.append("collision")
         return names
 
     def __repr__(self) -> str:

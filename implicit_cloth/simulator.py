@@ -125,6 +125,11 @@ class Simulator:
         v = np.broadcast_to(np.asarray(scene.data["cloth"]["velocity"], dtype=float), x.shape).copy()
         self.model.apply_pins(x, v, 0.0)
         self.state = State(x, v, 0.0)
+        self.collider: Any = None
+        if scene.data["obstacles"]:   # fcl and the collision code are imported only for obstacles
+            from .collision import Collider
+
+            self.collider = Collider(scene.data["obstacles"], scene.data["collision"], self.model)
         self.last_step: Any = None
         self.blas_threads = blas_threads
         #: adaptive step control (``simulation.adaptive.enabled``), else None
@@ -166,10 +171,12 @@ class Simulator:
         self._reset_history()
 
     def _reset_history(self) -> None:
-        """After the state is assigned: integrator history and suspended adaptive criteria are forgotten."""
+        """After the state is assigned: integrator history, suspended adaptive criteria and resting contacts are forgotten."""
         self.integrator.reset()
         if self.adaptive is not None:
             self.adaptive.reset()
+        if self.collider is not None:
+            self.collider.reset()
 
     @property
     def time(self) -> float:
@@ -188,11 +195,23 @@ class Simulator:
     def _substep(self, state: State, h: float) -> tuple[State, Any]:
         """One integrator step of ``h`` seconds from ``state``, then strain limiting if declared.
 
-        The unit that adaptive stepping discards and redoes with a smaller ``h``.
+        The unit that adaptive stepping discards and redoes with a smaller ``h``: with obstacles, the resting
+        contacts enter the solve as constraints and the collision response corrects the result, so every
+        substep (and every retry) is collision-free and the adaptive criteria judge the corrected state.
         """
+        if self.collider is not None:
+            self.collider.constrain(self.integrator, state)
         new, info = self.integrator.step(state, h)
+        if self.collider is not None:
+            work = self.collider.constraint_work(self.integrator, state.v, new.v)
         if self.strain_limiter is not None:
             self.strain_limiter.apply(new, h)
+        if self.collider is not None and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
+            # last, so that nothing after it moves the cloth into an obstacle; corrects new.x, new.v in place
+            # (BDF2 keeps them as history)
+            e_before = diagnostics.total_energy(self.model, new.x, new.v)
+            info.collision = self.collider.respond(state, new, h, self.integrator)
+            info.collision.work = work + diagnostics.total_energy(self.model, new.x, new.v) - e_before
         return new, info
 
     def _advance(self) -> Any:
@@ -269,6 +288,9 @@ class Simulator:
         frames: dict[str, list[float]] = {k: [] for k in (
             "time", "kinetic", "gravity", "springs", "potential", "total", "pin_work", "max_strain",
             "solver_iterations", "solver_residual", "min_step", "t_assembly", "t_setup", "t_solve", "t_other")}
+        col = _CollisionTotals() if self.collider is not None else None
+        if col is not None:
+            frames["t_collision"] = []
         positions: list[np.ndarray] = []
         totals = {"steps": 0, "iterations": 0, "max_iterations": 0, "max_residual": 0.0, "unconverged_steps": 0}
         acc = {"it": 0, "res": 0.0, "t_assembly": 0.0, "t_setup": 0.0, "t_solve": 0.0, "t_other": 0.0}
@@ -288,6 +310,9 @@ class Simulator:
             for k in ("t_assembly", "t_setup", "t_solve", "t_other"):
                 frames[k].append(acc[k])
                 acc[k] = 0.0
+            if col is not None:
+                frames["t_collision"].append(col.frame_time)
+                col.frame_time = 0.0
             acc["it"], acc["res"] = 0, 0.0
 
         status, reason = "ok", ""
@@ -323,12 +348,16 @@ class Simulator:
                 acc["t_assembly"] += info.t_assembly
                 acc["t_setup"] += info.t_setup
                 acc["t_solve"] += info.t_solve
+                if col is not None:
+                    col.add(info.collision)
+                    acc["t_other"] -= info.collision.t_collision
                 if next_frame < len(keep) and s == keep[next_frame]:
                     m = diagnostics.measure(model, self.state.x, self.state.v)
-                    growth = m["total"] - e0["total"] - pin_work
+                    growth = m["total"] - e0["total"] - pin_work - (col.work if col is not None else 0.0)
                     if growth > bound:
                         status = "diverged"
-                        reason = (f"energy grew by {growth:.3g} J (beyond the pins' work) at t={self.state.t:.6g} s "
+                        reason = (f"energy grew by {growth:.3g} J (beyond the pins' and obstacles' work) "
+                                  f"at t={self.state.t:.6g} s "
                                   f"(step {s} of {n_steps}), beyond the bound {bound:.3g} J "
                                   f"= {factor:g} x energy scale {scale:.3g} J")
                         break
@@ -377,6 +406,9 @@ class Simulator:
         if self.strain_limiter is not None:
             report["strain_limit"] = {"max_strain": self.strain_limiter.max_strain,
                                       "iterations": self.strain_limiter.iterations, **self.strain_limiter.stats}
+        if col is not None:
+            report["timing"]["t_collision"] = col.time
+            report["collision"] = col.report(self.collider)
         if self.integrator.implicit:
             n = max(totals["steps"], 1)
             report["solver"] = {
@@ -398,6 +430,51 @@ class Simulator:
         if status == "diverged":
             raise DivergenceError(reason, traj)
         return traj
+
+
+class _CollisionTotals:
+    """Run totals of the collision stage (the report's "collision" section)."""
+
+    def __init__(self) -> None:
+        self.steps = self.contacts = self.candidates = self.failsafe_steps = self.failsafe_vertices = 0
+        self.max_resting = 0
+        self.max_penetration = 0.0
+        self.time = self.frame_time = 0.0
+        self.toi = math.inf
+        self.work = 0.0
+
+    def add(self, c: Any) -> None:
+        self.steps += 1
+        self.contacts += c.contacts
+        self.candidates += c.candidates
+        self.max_resting = max(self.max_resting, c.resting)
+        self.failsafe_steps += int(c.failsafe > 0)
+        self.failsafe_vertices += c.failsafe
+        self.max_penetration = max(self.max_penetration, c.max_penetration)
+        self.time += c.t_collision
+        self.frame_time += c.t_collision
+        self.work += c.work
+        if c.toi == c.toi:   # not nan
+            self.toi = min(self.toi, c.toi)
+
+    def report(self, collider: Any) -> dict[str, Any]:
+        n = max(self.steps, 1)
+        return {
+            "obstacles": [o.shape.name for o in collider.obstacles],
+            "thickness": collider.thickness,
+            "contacts": self.contacts,
+            "mean_contacts": self.contacts / n,
+            "candidates": self.candidates,
+            "mean_candidates": self.candidates / n,
+            "max_resting_contacts": self.max_resting,
+            "earliest_toi": self.toi if math.isfinite(self.toi) else None,
+            "max_penetration": self.max_penetration,
+            "failsafe_steps": self.failsafe_steps,
+            "failsafe_vertices": self.failsafe_vertices,
+            "work": self.work,
+            "time": self.time,
+            "mean_time_per_step": self.time / n,
+        }
 
 
 _CONTROLLER: Any = None

@@ -22,6 +22,8 @@ class StepInfo:
     t_assembly: float = 0.0
     t_setup: float = 0.0
     t_solve: float = 0.0
+    #: collision figures of the step (a CollisionInfo), when the scene has obstacles
+    collision: Any = None
 
 
 class Integrator:
@@ -69,10 +71,15 @@ class ImplicitIntegrator(Integrator):
         self.precond = make_preconditioner(opts["preconditioner"], model)
         self.filter = Filter(model.n, model.pinned)
         self._mass3 = np.repeat(model.masses, 3)
+        #: prescribed velocity changes (N, 3) of constrained non-pinned vertices (set by the collider)
+        self.extra_dv: np.ndarray | None = None
+        #: ``A dv - b`` (N, 3), N*s, of the last solve when the filter had partial constraints:
+        #: the impulse the constraints applied (only their constrained components are non-zero)
+        self.constraint_impulse: np.ndarray | None = None
 
     def _pin_dv(self, v: np.ndarray) -> np.ndarray:
-        """Prescribed velocity changes z: pinned vertices reach their pin velocity."""
-        z = np.zeros_like(v)
+        """Prescribed velocity changes z: pinned vertices reach their pin velocity (plus ``extra_dv``)."""
+        z = np.zeros_like(v) if self.extra_dv is None else self.extra_dv.copy()
         if len(self.model.pinned):
             z[self.model.pinned] = self.model.pin_velocity - v[self.model.pinned]
         return z
@@ -94,4 +101,8 @@ class ImplicitIntegrator(Integrator):
         info.t_setup += t1 - t0
         info.t_solve += time.perf_counter() - t1
         info.iterations, info.residual, info.converged = res.iterations, res.residual, res.converged
+        if len(self.filter.partial):
+            self.constraint_impulse = (A @ dv - b.reshape(-1)).reshape(-1, 3)
+        else:
+            self.constraint_impulse = None
         return dv.reshape(-1, 3)

@@ -1,0 +1,422 @@
+"""Primitive obstacles: signed distance, outward normal, sharp features and continuous sweeps.
+
+Every shape is described in its own *local* frame (centre at the origin, the
+shape's axis along +z) and placed in the world by a :class:`Motion` (a rigid
+motion: position and rotation at time ``t``). All functions take local points
+``p`` as (K, 3) arrays, metres, and are vectorised over K.
+
+Signed distance ``phi(p)`` (m) is negative inside, zero on the surface and
+equals the Euclidean distance to the surface everywhere, so ``|grad phi| = 1``
+(an *exact* signed distance, not a bound). Its gradient is the outward unit
+normal; at a sharp feature (a box corner or edge, the cone's apex or rim) the
+normal of an outside point is the direction from the nearest surface point to
+the point, which is exact at tips and edges.
+
+Continuous sweeps (:func:`sweep`): the earliest ``s`` in ``[0, 1]`` at which
+the point ``p(s) = p0 + s (p1 - p0)`` comes within ``r`` of the shape,
+``phi(p(s)) = r``. Sphere and plane: closed form (a quadratic and a linear
+equation). Box, capsule, cone: conservative advancement on the exact signed
+distance, ``s_{k+1} = s_k + (phi(p(s_k)) - r) / |p1 - p0|``, which never steps
+past the surface because ``phi`` is 1-Lipschitz, so the point at the returned
+``s`` is never inside the inflated shape.
+
+Sharp features (convex shapes only): ``feature_points`` (box corners, cone apex
+and rim) and ``feature_edges`` (box edges, cone rim as a polygon inscribed in
+the circle). A cloth triangle can be pierced by a corner, and a cloth edge can
+slide across a box edge, with every cloth vertex outside: these features are
+tested against cloth triangles and edges by :mod:`implicit_cloth.collision.ccd`.
+Smooth shapes (sphere, capsule, plane) have none: a cloth triangle whose
+vertices are at distance ``>= r`` from a surface of curvature radius ``R`` dips
+at most ``L^2 / (8 R)`` (``L`` its longest edge) towards it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+#: Segments of the polygon that stands for the cone's base rim as a sharp feature.
+CONE_RIM_SEGMENTS = 64
+#: Conservative advancement stops within this fraction of r (or 1e-9 m) of the inflated surface.
+SWEEP_TOLERANCE = 1e-3
+#: Most conservative-advancement iterations (grazing sweeps converge slowly; the sweep then stops early).
+SWEEP_MAX_ITERATIONS = 100
+
+
+def _norm(a: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.einsum("...i,...i->...", a, a))
+
+
+def _unit(a: np.ndarray, fallback: np.ndarray | None = None) -> np.ndarray:
+    """Rows of ``a`` normalised; zero rows become ``fallback`` (default +z)."""
+    n = _norm(a)
+    out = np.empty_like(a)
+    ok = n > 1e-300
+    out[ok] = a[ok] / n[ok, None]
+    out[~ok] = (0.0, 0.0, 1.0) if fallback is None else fallback
+    return out
+
+
+# --------------------------------------------------------------------------- motion
+@dataclass
+class Motion:
+    """Rigid motion of an obstacle: ``x = c(t) + R(t) p`` for a local point ``p``.
+
+    ``c(t) = center + velocity t`` (m), ``R(t) = exp(t [omega]x) R0``: a constant
+    angular velocity ``omega`` (rad/s, world frame) about the moving centre.
+    """
+
+    center: np.ndarray
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    angular_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def moving(self) -> bool:
+        return bool(np.any(self.velocity) or np.any(self.angular_velocity))
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Centre (3,) m and rotation matrix (3, 3) at time ``t``."""
+        c = self.center + self.velocity * t
+        if np.any(self.angular_velocity):
+            R = Rotation.from_rotvec(self.angular_velocity * t).as_matrix() @ self.rotation
+        else:
+            R = self.rotation
+        return c, R
+
+    def to_local(self, x: np.ndarray, t: float) -> np.ndarray:
+        """World points (K, 3) to local coordinates ``R^T (x - c)`` at time ``t``."""
+        c, R = self.pose(t)
+        return (x - c) @ R
+
+    def to_world(self, p: np.ndarray, t: float) -> np.ndarray:
+        c, R = self.pose(t)
+        return p @ R.T + c
+
+    def point_velocity(self, x: np.ndarray, t: float) -> np.ndarray:
+        """Velocity (K, 3) m/s of the obstacle's material point at world ``x``: ``v + omega x (x - c)``."""
+        c, _ = self.pose(t)
+        return self.velocity + np.cross(self.angular_velocity, x - c)
+
+
+# --------------------------------------------------------------------------- shapes
+class Shape:
+    """A primitive in its local frame. Subclasses implement :meth:`closest`."""
+
+    name = ""
+    #: Local points of sharp corners or tips, (P, 3).
+    feature_points: np.ndarray = np.zeros((0, 3))
+    #: Local sharp edges as (E, 2, 3) segments.
+    feature_edges: np.ndarray = np.zeros((0, 2, 3))
+    #: Half-extents of the local bounding box (inf for the plane).
+    half_extent: np.ndarray = np.zeros(3)
+
+    def closest(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Signed distance (K,) m, outward unit normal (K, 3) and nearest surface point (K, 3)."""
+        raise NotImplementedError
+
+    def distance(self, p: np.ndarray) -> np.ndarray:
+        return self.closest(p)[0]
+
+    def sweep(self, p0: np.ndarray, p1: np.ndarray, r: float) -> np.ndarray:
+        """Earliest ``s`` in [0, 1] with ``phi(p0 + s (p1 - p0)) <= r``; ``inf`` where there is none.
+
+        Conservative advancement (see the module notes); subclasses with a closed form override it.
+        """
+        d = p1 - p0
+        speed = _norm(d)
+        s = np.zeros(len(p0))
+        gap = self.distance(p0) - r
+        tol = max(SWEEP_TOLERANCE * r, 1e-9)
+        active = gap > tol
+        for _ in range(SWEEP_MAX_ITERATIONS):
+            idx = np.flatnonzero(active)
+            if not len(idx):
+                break
+            step = np.where(speed[idx] > 0, gap[idx] / np.maximum(speed[idx], 1e-300), np.inf)
+            s[idx] += step
+            gone = s[idx] > 1.0
+            s[idx[gone]] = np.inf
+            active[idx[gone]] = False
+            live = idx[~gone]
+            g = self.distance(p0[live] + s[live, None] * d[live]) - r
+            gap[live] = g
+            active[live[g <= tol]] = False
+        # still advancing after the cap (a grazing path): stop where it got to, which is outside
+        # the inflated shape and near it, so that a later hit is never missed
+        return s
+
+
+class Sphere(Shape):
+    name = "sphere"
+
+    def __init__(self, radius: float) -> None:
+        self.radius = float(radius)
+        self.half_extent = np.full(3, self.radius)
+
+    def closest(self, p):
+        n = _unit(p)
+        return _norm(p) - self.radius, n, self.radius * n
+
+    def distance(self, p):
+        return _norm(p) - self.radius
+
+    def sweep(self, p0, p1, r):
+        """Closed form: smallest root of ``|p0 + s d|^2 = (R + r)^2`` in [0, 1]."""
+        d = p1 - p0
+        a = np.einsum("ij,ij->i", d, d)
+        b = np.einsum("ij,ij->i", p0, d)
+        rr = (self.radius + r) ** 2
+        c = np.einsum("ij,ij->i", p0, p0) - rr
+        s = np.full(len(p0), np.inf)
+        s[c <= 0] = 0.0
+        disc = b * b - a * c
+        ok = (c > 0) & (a > 0) & (disc >= 0) & (b < 0)
+        root = (-b[ok] - np.sqrt(disc[ok])) / a[ok]
+        s[np.flatnonzero(ok)[root <= 1.0]] = root[root <= 1.0]
+        return s
+
+
+class Plane(Shape):
+    """The half-space ``z <= 0`` of the local frame (outward normal +z)."""
+
+    name = "plane"
+
+    def __init__(self) -> None:
+        self.half_extent = np.full(3, np.inf)
+
+    def closest(self, p):
+        n = np.broadcast_to(np.array([0.0, 0.0, 1.0]), p.shape).copy()
+        q = p.copy()
+        q[:, 2] = 0.0
+        return p[:, 2].copy(), n, q
+
+    def sweep(self, p0, p1, r):
+        """Closed form: ``p0_z + s (p1_z - p0_z) = r``."""
+        z0, z1 = p0[:, 2] - r, p1[:, 2] - r
+        s = np.full(len(p0), np.inf)
+        s[z0 <= 0] = 0.0
+        hit = (z0 > 0) & (z1 <= 0)
+        s[hit] = z0[hit] / (z0[hit] - z1[hit])
+        return s
+
+
+class Box(Shape):
+    """Axis-aligned box of full extents ``size`` centred at the origin of its local frame."""
+
+    name = "box"
+
+    def __init__(self, size) -> None:
+        self.h = 0.5 * np.asarray(size, dtype=float)
+        self.half_extent = self.h.copy()
+        signs = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=float)
+        self.feature_points = signs * self.h
+        edges = []
+        for a in range(3):                          # 4 edges parallel to each axis
+            b, c = [k for k in range(3) if k != a]
+            for sb in (-1, 1):
+                for sc in (-1, 1):
+                    e = np.zeros((2, 3))
+                    e[:, a] = (-self.h[a], self.h[a])
+                    e[:, b] = sb * self.h[b]
+                    e[:, c] = sc * self.h[c]
+                    edges.append(e)
+        self.feature_edges = np.array(edges)
+
+    def distance(self, p):
+        q = np.abs(p) - self.h
+        return _norm(np.maximum(q, 0.0)) + np.minimum(q.max(axis=1), 0.0)
+
+    def closest(self, p):
+        h = self.h
+        q = np.abs(p) - h
+        sgn = np.where(p < 0, -1.0, 1.0)
+        outside = np.any(q > 0, axis=1)
+        qp = np.maximum(q, 0.0)
+        d_out = _norm(qp)
+        phi = np.where(outside, d_out, np.max(q, axis=1))
+        c = np.clip(p, -h, h)                        # nearest point for outside points
+        n = _unit(p - c)
+        ins = np.flatnonzero(~outside)
+        if len(ins):
+            ax = np.argmax(q[ins], axis=1)
+            n[ins] = 0.0
+            n[ins, ax] = sgn[ins, ax]
+            c[ins] = p[ins]
+            c[ins, ax] = sgn[ins, ax] * h[ax]
+        return phi, n, c
+
+
+class Capsule(Shape):
+    """Points within ``radius`` of the segment from ``-height/2`` to ``+height/2`` on the local z axis."""
+
+    name = "capsule"
+
+    def __init__(self, radius: float, height: float) -> None:
+        self.radius, self.height = float(radius), float(height)
+        self.half_extent = np.array([self.radius, self.radius, self.radius + 0.5 * self.height])
+
+    def distance(self, p):
+        z = p[:, 2] - np.clip(p[:, 2], -0.5 * self.height, 0.5 * self.height)
+        return np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2 + z * z) - self.radius
+
+    def closest(self, p):
+        a = np.zeros_like(p)
+        a[:, 2] = np.clip(p[:, 2], -0.5 * self.height, 0.5 * self.height)
+        n = _unit(p - a, fallback=np.array([1.0, 0.0, 0.0]))
+        return _norm(p - a) - self.radius, n, a + self.radius * n
+
+
+class Cone(Shape):
+    """Solid cone: base disc of ``radius`` at local z = 0 (its centre at the origin), apex at z = ``height``.
+
+    The signed distance is that of the cross-section triangle ``(0,0), (R,0), (0,H)``
+    in the (rho, z) half-plane, rho = sqrt(x^2 + y^2), to its two boundary
+    segments (base and slant), negative inside.
+    """
+
+    name = "cone"
+
+    def __init__(self, radius: float, height: float) -> None:
+        self.radius, self.height = float(radius), float(height)
+        self.half_extent = np.array([self.radius, self.radius, self.height])   # about (0, 0, 0): z in [0, H]
+        k = CONE_RIM_SEGMENTS
+        ang = 2 * np.pi * np.arange(k) / k
+        rim = np.stack([self.radius * np.cos(ang), self.radius * np.sin(ang), np.zeros(k)], axis=1)
+        self.feature_points = np.vstack([[0.0, 0.0, self.height], rim])
+        self.feature_edges = np.stack([rim, np.roll(rim, -1, axis=0)], axis=1)
+
+    def distance(self, p):
+        R, H = self.radius, self.height
+        rho = np.hypot(p[:, 0], p[:, 1])
+        z = p[:, 2]
+        db = np.hypot(rho - np.minimum(rho, R), z)                        # to the base disc's segment
+        u = np.clip(((R - rho) * R + z * H) / (R * R + H * H), 0.0, 1.0)  # along the slant from (R, 0)
+        ds = np.hypot(rho - R + u * R, z - u * H)
+        dist = np.minimum(db, ds)
+        inside = (z >= 0) & (rho / R + z / H <= 1.0)
+        return np.where(inside, -dist, dist)
+
+    def closest(self, p):
+        R, H = self.radius, self.height
+        rho = np.hypot(p[:, 0], p[:, 1])
+        z = p[:, 2]
+        # base segment (0,0)-(R,0)
+        b_rho = np.clip(rho, 0.0, R)
+        db = np.stack([rho - b_rho, z], axis=1)
+        # slant segment (R,0)-(0,H)
+        e = np.array([-R, H])
+        u = np.clip(((rho - R) * e[0] + z * e[1]) / (e @ e), 0.0, 1.0)
+        s_rho, s_z = R + u * e[0], u * e[1]
+        ds = np.stack([rho - s_rho, z - s_z], axis=1)
+        nb, ns = _norm(db), _norm(ds)
+        use_b = nb <= ns
+        dist = np.where(use_b, nb, ns)
+        c_rho = np.where(use_b, b_rho, s_rho)
+        c_z = np.where(use_b, 0.0, s_z)
+        inside = (z >= 0) & (rho / R + z / H <= 1.0)
+        phi = np.where(inside, -dist, dist)
+        # 2-D outward normal: from the nearest point to p outside, reversed inside; exactly on the
+        # surface, the face normal of the nearest segment
+        g = np.stack([rho - c_rho, z - c_z], axis=1)
+        g = np.where(inside[:, None], -g, g)
+        face = np.where(use_b[:, None], np.array([0.0, -1.0]), np.array([H, R]) / np.hypot(H, R))
+        gn = _norm(g)
+        small = gn <= 1e-12 * max(R, H)
+        g[small] = face[small]
+        g /= _norm(g)[:, None]
+        er = np.zeros((len(p), 2))
+        er[:, 0] = 1.0
+        on_axis = rho > 1e-300
+        er[on_axis] = p[on_axis, :2] / rho[on_axis, None]
+        n = np.column_stack([g[:, :1] * er, g[:, 1]])
+        c = np.column_stack([c_rho[:, None] * er, c_z])
+        return phi, n, c
+
+    def aabb_center(self) -> np.ndarray:
+        return np.array([0.0, 0.0, 0.5 * self.height])
+
+
+class MeshShape(Shape):
+    """A triangle mesh obstacle (any file trimesh reads), two-sided: the cloth stays on the side it is on.
+
+    No signed distance: contacts are found by the fcl broad phase
+    (:mod:`~implicit_cloth.collision.broadphase`) and the exact point-triangle
+    and edge-edge tests of :mod:`~implicit_cloth.collision.ccd`. Every mesh
+    vertex and edge is treated as a sharp feature.
+    """
+
+    name = "mesh"
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+        from . import broadphase
+
+        self.vertices = np.asarray(vertices, dtype=float)
+        self.faces = np.asarray(faces, dtype=np.int64)
+        e = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
+        e.sort(axis=1)
+        self.edges, inv = np.unique(e, axis=0, return_inverse=True)
+        self.face_edges = inv.reshape(3, -1).T                       # (F, 3) edge indices of each face
+        self.bounds = (self.vertices.min(axis=0), self.vertices.max(axis=0))
+        self.half_extent = np.maximum(np.abs(self.bounds[0]), np.abs(self.bounds[1]))
+        n = np.cross(self.vertices[self.faces[:, 1]] - self.vertices[self.faces[:, 0]],
+                     self.vertices[self.faces[:, 2]] - self.vertices[self.faces[:, 0]])
+        self.face_normals = n / np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
+        self.feature_points = self.vertices
+        self.feature_edges = self.vertices[self.edges]
+        self.bvh = broadphase.bvh(self.vertices, self.faces)
+
+
+def local_aabb(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corners of the shape's local bounding box, m."""
+    if isinstance(shape, MeshShape):
+        return shape.bounds
+    if isinstance(shape, Cone):
+        return np.array([-shape.radius, -shape.radius, 0.0]), np.array([shape.radius, shape.radius, shape.height])
+    return -shape.half_extent, shape.half_extent
+
+
+def rotation_to_axis(axis) -> np.ndarray:
+    """Rotation matrix taking local +z to the unit vector along ``axis``."""
+    a = np.asarray(axis, dtype=float)
+    a = a / np.linalg.norm(a)
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(z, a)
+    s, c = np.linalg.norm(v), float(z @ a)
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    return Rotation.from_rotvec(v / s * np.arctan2(s, c)).as_matrix()
+
+
+def build(spec: dict) -> tuple[Shape, Motion]:
+    """The shape and its motion from one validated ``[[obstacles]]`` table."""
+    kind = spec["shape"]
+    vel = np.asarray(spec["velocity"], dtype=float)
+    omega = np.asarray(spec["angular_velocity"], dtype=float)
+    if kind == "plane":
+        return Plane(), Motion(np.asarray(spec["point"], float), rotation_to_axis(spec["normal"]), vel, omega)
+    center = np.asarray(spec.get("center", spec.get("translation")), dtype=float)
+    if kind == "sphere":
+        shape: Shape = Sphere(spec["radius"])
+        R = np.eye(3)
+    elif kind == "box":
+        shape = Box(spec["size"])
+        R = Rotation.from_rotvec(spec["rotation"]).as_matrix()
+    elif kind == "capsule":
+        shape = Capsule(spec["radius"], spec["height"])
+        R = rotation_to_axis(spec["axis"])
+    elif kind == "cone":
+        shape = Cone(spec["radius"], spec["height"])
+        R = rotation_to_axis(spec["axis"])
+    elif kind == "mesh":
+        from ..scene import load_obstacle_mesh
+
+        verts, faces = load_obstacle_mesh(spec["path"])
+        shape = MeshShape(verts * spec["scale"], faces)
+        center = np.asarray(spec["translation"], dtype=float)
+        R = Rotation.from_rotvec(spec["rotation"]).as_matrix()
+    else:  # pragma: no cover - validation refuses other shapes
+        raise ValueError(f"unknown obstacle shape {kind!r}")
+    return shape, Motion(center, R, vel, omega)
