@@ -55,6 +55,7 @@ Usage::
 
     python benchmarks/headline.py                  # ~15 min on 2 shared cores (256²: ~20 steps)
     python benchmarks/headline.py --sizes 16 32 --ks 1e3 1e5 --out /tmp/res
+    python benchmarks/headline.py --stability '' --resolution 32 --ks 1e2 1e3 1e4 --sizes 16 --name headline_32
     python benchmarks/headline.py --quick          # CI smoke test (< 1 min)
     implicit-cloth bench headline --quick --out /tmp/res
 
@@ -336,6 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--clock", choices=["cpu", "wall"], default="cpu",
                    help="cost measure: process CPU time (default) or wall time")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--name", default="headline", help="output file stem (OUT/NAME.json, .md, .png)")
     p.add_argument("--quick", action="store_true", help="8² and 12², two k at 6² searched here, coarse (CI smoke)")
     a = p.parse_args(argv)
     if a.quick:
@@ -397,8 +399,8 @@ def main(argv: list[str] | None = None) -> int:
     res["wall_time_s"] = time.perf_counter() - wall0
     md = markdown(res)
     out = Path(a.out)
-    write_outputs(out, "headline", res, md)
-    plot(res, out / "headline.png")
+    write_outputs(out, a.name, res, md)
+    plot(res, out / f"{a.name}.png")
     print(md)
     print(f"wall time {res['wall_time_s']:.1f} s", flush=True)
     return 0

@@ -119,6 +119,11 @@ def test_accuracy_cost_quick_via_cli(tmp_path):
     assert "| 1/15 |" in md and "div (step" in md
     png = (tmp_path / "accuracy_cost.png").read_bytes()
     assert png[:8] == PNG_MAGIC and len(png) > 5000
+    # --render re-derives the same tables from the JSON without simulating
+    again = tmp_path / "again"
+    assert accuracy_cost.main(["--render", str(tmp_path / "accuracy_cost.json"), "--out", str(again)]) == 0
+    assert (again / "accuracy_cost.md").read_text() == md
+    assert (again / "accuracy_cost.png").read_bytes()[:8] == PNG_MAGIC
 
 
 def test_headline_quick_via_cli(tmp_path):
