@@ -411,7 +411,7 @@ def plot(res: dict, path: Path) -> None:
         ax.set_ylabel("RMS vertex position error / cloth size (1)")
         ax.set_title(f"{name}: {res['settings']['resolution']}² cloth, {res['settings']['duration']:g} s simulated")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7, loc="upper right")
+        ax.legend(fontsize=7, loc="center left")
     fig.tight_layout()
     save_png(fig, path)
     plt.close(fig)
