@@ -59,9 +59,9 @@ Measured per run (frames at 15 Hz, including t = 0):
   ``--repeats`` (3) runs; ``--clock wall`` uses the wall time instead. Both are
   kept (``cpu_s``, ``wall_s``, with min and max). The engine steps on one
   thread (BLAS pinned to one), so on an idle machine the two agree; on the
-  shared machine these results come from (five jobs on two cores, each in its
-  own CPU-share group, so ``nice`` did not help) wall times were inflated 3-13
-  times and varied from repeat to repeat, CPU times much less. The simulator's
+  shared machine these results come from (five jobs on two cores; ``nice``
+  made no visible difference) wall times were inflated 5-20 times and varied
+  from repeat to repeat, CPU times much less. The simulator's
   construction (including the multigrid hierarchy) is not timed. Diverged runs
   are timed once (to the divergence).
 
@@ -75,6 +75,7 @@ Usage::
 
     python benchmarks/accuracy_cost.py                     # the full run, ~15 min on 2 shared cores
     python benchmarks/accuracy_cost.py --scenes hanging --tolerances 1e-2 1e-4 --out /tmp/res
+    python benchmarks/accuracy_cost.py --k 1e4 --scenes hanging --tolerances 1e-1 1e-3 --name accuracy_cost_k1e4
     python benchmarks/accuracy_cost.py --quick             # CI smoke test (< 1 min)
     python benchmarks/accuracy_cost.py --render results/accuracy_cost.json --out /tmp/res   # tables and plot only
     implicit-cloth bench accuracy_cost --quick --out /tmp/res
@@ -105,7 +106,7 @@ from implicit_cloth import diagnostics
 EXPLICIT = ("forward_euler", "symplectic_euler", "verlet", "rk4")
 IMPLICIT = ("backward_euler", "bdf2")
 SCENES = ("hanging", "wind")
-K = 1e3                 # N/m, structural and shear stiffness (bend K / 100)
+K = 1e3                 # N/m, structural and shear stiffness (bend K / 100); --k sets it for a run
 KD = 0.01               # N*s/m, structural and shear damping (bend KD / 100)
 SIZE = 1.0              # m, cloth width and height (the L of the relative errors)
 MASS = 0.1              # kg
@@ -119,8 +120,12 @@ LEVELS = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 3e-4, 1e-4)
 
 
 # --------------------------------------------------------------------------- scenes
-def scene(n: int, name: str) -> dict:
-    """The benchmark cloth: ``"equilibrium"`` (both top corners pinned, gravity), ``"hanging"`` or ``"wind"``."""
+def scene(n: int, name: str, k: float | None = None) -> dict:
+    """The benchmark cloth: ``"equilibrium"`` (both top corners pinned, gravity), ``"hanging"`` or ``"wind"``.
+
+    ``k`` (N/m, structural and shear; bend k/100) defaults to the module's ``K``.
+    """
+    k = K if k is None else k
     if name not in ("equilibrium",) + SCENES:
         raise ValueError(f"scene: must be one of equilibrium, {', '.join(SCENES)}, got {name!r}")
     effects: dict = {"gravity": [0.0, 0.0, -G]}
@@ -129,9 +134,9 @@ def scene(n: int, name: str) -> dict:
         effects["wind"] = {"velocity": [0.0, WIND, 0.0]}
     return {"cloth": {"size": [SIZE, SIZE], "resolution": [n, n], "mass": MASS, "plane": "xz",
                       "pins": ["top_left"] if name == "hanging" else ["top_left", "top_right"],
-                      "springs": {"structural": {"stiffness": K, "damping": KD},
-                                  "shear": {"stiffness": K, "damping": KD},
-                                  "bend": {"stiffness": K / 100, "damping": KD / 100}}},
+                      "springs": {"structural": {"stiffness": k, "damping": KD},
+                                  "shear": {"stiffness": k, "damping": KD},
+                                  "bend": {"stiffness": k / 100, "damping": KD / 100}}},
             "effects": effects}
 
 
@@ -302,7 +307,7 @@ def _cell(r: dict | None) -> str:
 
 def markdown(res: dict) -> str:
     s = res["settings"]
-    out = [f"{s['resolution']}² cloth, 1 m x 1 m, 0.1 kg, vertical, k = {K:g} N/m (bend {K / 100:g}), "
+    out = [f"{s['resolution']}² cloth, 1 m x 1 m, 0.1 kg, vertical, k = {s['k']:g} N/m (bend {s['k'] / 100:g}), "
            f"kd = {KD:g} N·s/m; from the equilibrium hanging by both top corners; {s['duration']:g} s simulated, "
            f"compared at 15 Hz frames. Cell: RMS / max vertex position error relative to the cloth size (1 m) / "
            f"max |E − E_ref| over m g L ({MASS * G * SIZE:.3g} J), and the cost of the run: its "
@@ -424,7 +429,7 @@ def analyse(runs: list[dict], levels: list[float]) -> tuple[list[dict], list[dic
     return pareto(runs), cheap
 
 
-def render(path: Path, out: Path) -> int:
+def render(path: Path, out: Path, name: str = "accuracy_cost") -> int:
     """Re-derive fronts and cheapest runs of a saved result (the runs themselves unchanged) and write the outputs."""
     import json
 
@@ -434,8 +439,8 @@ def render(path: Path, out: Path) -> int:
     for sc in res["results"].values():
         sc["pareto"], sc["cheapest"] = analyse(sc["runs"], res["settings"]["levels"])
     md = markdown(res)
-    write_outputs(out, "accuracy_cost", res, md)
-    plot(res, out / "accuracy_cost.png")
+    write_outputs(out, name, res, md)
+    plot(res, out / f"{name}.png")
     print(md)
     return 0
 
@@ -446,6 +451,7 @@ def _dt(s: str) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
+    global K
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     p.add_argument("--integrators", nargs="+", default=list(ic.INTEGRATORS), choices=list(ic.INTEGRATORS))
@@ -462,16 +468,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--levels", type=float, nargs="+", default=list(LEVELS), help="RMS error levels")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     p.add_argument("--quick", action="store_true", help="6² cloth, 0.2 s, two tolerances, one repeat (CI smoke)")
+    p.add_argument("--k", type=float, default=K, help="structural and shear spring stiffness, N/m (bend k/100)")
+    p.add_argument("--name", default="accuracy_cost", help="output file stem (OUT/NAME.json, .md, .png)")
     p.add_argument("--render", metavar="JSON",
                    help="do not simulate: re-derive the Pareto fronts and cheapest runs of an accuracy_cost.json "
                         "and write the MD and PNG (and the JSON) to --out")
     a = p.parse_args(argv)
     if a.render:
-        return render(Path(a.render), Path(a.out))
+        return render(Path(a.render), Path(a.out), a.name)
     if a.quick:
         a.resolution, a.duration, a.tolerances, a.repeats = 6, 0.2, [1e-1, 1e-3], 1
         a.implicit_min_dt, a.ref_factor, a.explicit_extra = 1 / 240, 4, 0
     CLOCK["name"] = a.clock
+    K = a.k   # every scene of this run (module default otherwise)
     steps_15 = a.duration * FRAME_RATE
     if abs(steps_15 - round(steps_15)) > 1e-9 or steps_15 < 1:
         raise SystemExit(f"accuracy_cost: --duration must be a positive multiple of 1/15 s, got {a.duration:g}")
@@ -533,8 +542,8 @@ def main(argv: list[str] | None = None) -> int:
     res["wall_time_s"] = time.perf_counter() - wall0
     md = markdown(res)
     out = Path(a.out)
-    write_outputs(out, "accuracy_cost", res, md)
-    plot(res, out / "accuracy_cost.png")
+    write_outputs(out, a.name, res, md)
+    plot(res, out / f"{a.name}.png")
     print(md)
     print(f"wall time {res['wall_time_s']:.1f} s", flush=True)
     return 0

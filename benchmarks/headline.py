@@ -37,9 +37,9 @@ Clock. Every time is measured both as the CPU time of this process
 (``time.process_time``) and as wall time; ``--clock`` (``cpu``, the default)
 picks the one the tables, plot and headline use, and both are in the JSON. The
 engine steps on one thread (BLAS pinned to one), so on an idle machine they
-agree; on the shared machine of these results (five jobs on two cores, each
-job in its own CPU-share group, so ``nice`` had no effect) wall times were
-inflated several-fold and varied from repeat to repeat. The engine's own split
+agree; on the shared machine of these results (five jobs on two cores;
+``nice`` made no visible difference) wall times were inflated 5-20 times and
+varied from repeat to repeat. The engine's own split
 of a step (assembly / setup / solve / collision, :class:`StepInfo`) is in wall
 time; it is shown as shares of the step's wall time, which a uniform slowdown
 leaves unchanged.
