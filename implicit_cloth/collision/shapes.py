@@ -1,8 +1,9 @@
 """Primitive obstacles: signed distance, outward normal, sharp features and continuous sweeps.
 
 Every shape is described in its own *local* frame (centre at the origin, the
-shape's axis along +z) and placed in the world by a :class:`Motion` (a rigid
-motion: position and rotation at time ``t``). All functions take local points
+shape's axis along +z) and placed in the world by a :class:`RigidMotion` (position
+and rotation at time ``t``: :class:`Motion` for a constant velocity and angular
+velocity, :class:`KeyframedMotion` for keyframes). All functions take local points
 ``p`` as (K, 3) arrays, metres, and are vectorised over K.
 
 Signed distance ``phi(p)`` (m) is negative inside, zero on the surface and
