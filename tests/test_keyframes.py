@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 from scipy.spatial.transform import Rotation
 
 import implicit_cloth as ic
 from implicit_cloth.collision.shapes import KeyframedMotion, Motion
 
-from test_collision import TOL, _passes_around, cloth_scene, depths
+from test_collision import TOL, _mesh_file, _passes_around, cloth_scene, depths
 
 R0 = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()      # the shape's own orientation
 KEYS = dict(times=[0.1, 0.4, 0.5, 1.0],
@@ -129,22 +130,29 @@ CASES = {
     "spinning_box": (dict(shape="box", size=[0.5, 0.08, 0.08], rotation=[0.0, 0.0, 0.3]),
                      np.array([0.0, 0.0, -0.05]), np.array([0.1, 0.0, 0.05]), np.array([0.0, 0.0, 6.0]),
                      dict(center=(0, 0, 0.05), friction=0.3), 0.3),
+    # a mesh sphere at 5 m/s, turning (mesh vertex-face, corner and edge tests)
+    "mesh": (dict(shape="mesh"), np.array([0.0, -0.3, 0.0]), np.array([0.0, 5.0, 0.0]), np.array([0.0, 0.0, 3.0]),
+             dict(center=(0, 0, 0), plane="xz", pins=["top_left", "top_right"]), 0.1),
 }
 
 
 @pytest.mark.parametrize("case", list(CASES))
-def test_two_keys_reproduce_the_velocity_form(case):
+def test_two_keys_reproduce_the_velocity_form(case, tmp_path):
     """Keys at t = 0 and t = T on the constant-twist path give the same cloth trajectory, to round-off."""
     ob, c0, v, w, cloth, duration = CASES[case]
+    place = "center"
+    if case == "mesh":
+        ob = {**ob, "path": _mesh_file(tmp_path, trimesh.creation.icosphere(subdivisions=1, radius=0.12))}
+        place = "translation"
     T = 0.4                                                   # the last key after the end of the run
-    const = cloth_scene({**ob, "center": list(c0), "velocity": list(v), "angular_velocity": list(w)},
+    const = cloth_scene({**ob, place: list(c0), "velocity": list(v), "angular_velocity": list(w)},
                         dt=1 / 30, duration=duration, res=10, size=0.6, **cloth)
     keyed = cloth_scene({**ob, "keyframes": [{"time": 0.0, "center": list(c0)},
                                              {"time": T, "center": list(c0 + v * T), "rotation": list(w * T)}]},
                         dt=1 / 30, duration=duration, res=10, size=0.6, **cloth)
     # the scene's own sensitivity to round-off: the velocity form with its centre moved by 1e-15 m (contacts
     # and the solver's stopping rule amplify a last-bit change to ~1e-8 m over a few steps in the box case)
-    nudged = cloth_scene({**ob, "center": list(c0 + 1e-15), "velocity": list(v), "angular_velocity": list(w)},
+    nudged = cloth_scene({**ob, place: list(c0 + 1e-15), "velocity": list(v), "angular_velocity": list(w)},
                          dt=1 / 30, duration=duration, res=10, size=0.6, **cloth)
     a, b, c = (ic.Simulator(s, adaptive={"enabled": False}).run() for s in (const, keyed, nudged))
     assert a.report["collision"]["contacts"] > 0
