@@ -83,7 +83,11 @@ OBSTACLE_SHAPES: dict[str, tuple[str, ...]] = {
     "plane": ("point", "normal"),
     "mesh": ("path", "scale", "translation", "rotation"),
 }
-_OBSTACLE_COMMON = ("shape", "velocity", "angular_velocity", "friction")
+_OBSTACLE_COMMON = ("shape", "velocity", "angular_velocity", "keyframes", "friction")
+#: Keys of one obstacle keyframe.
+_KEYFRAME_KEYS = ("time", "center", "rotation")
+#: The key that places each shape (a keyframe's ``center`` stands for it).
+_OBSTACLE_PLACE = {"plane": "point", "mesh": "translation"}
 _COLLISION_KEYS = ("thickness", "restitution", "max_iterations")
 COLLISION_DEFAULTS: dict[str, Any] = {"thickness": 0.005, "restitution": 0.0, "max_iterations": 8}
 
@@ -458,6 +462,30 @@ def load_obstacle_mesh(file: str, key: str = "obstacles.path", given: Any = None
     return verts, faces.astype(np.int64)
 
 
+def _keyframes(path: str, value: Any) -> list[dict[str, Any]]:
+    """An obstacle's ``keyframes``: at least two tables ``{time, center, rotation}``, times strictly increasing.
+
+    ``time`` in s (>= 0), ``center`` in m, ``rotation`` a rotation vector in rad (default [0, 0, 0]) on top of
+    the shape's own orientation.
+    """
+    if not _is_list(value) or len(value) < 2:
+        raise _fail(path, "must be a list of at least 2 keys ({time = s, center = [x, y, z]})", value)
+    keys: list[dict[str, Any]] = []
+    for k, key in enumerate(value):
+        kp = f"{path}[{k}]"
+        _check_keys(kp, key, _KEYFRAME_KEYS)
+        for name, what in (("time", "its time in s"), ("center", "its center [x, y, z] in m")):
+            if name not in key:
+                raise SceneError(f"{kp}.{name}: missing (each key needs {what})")
+        t = _number(f"{kp}.time", key["time"], lo=0.0)
+        if keys and not t > keys[-1]["time"]:
+            raise _fail(f"{kp}.time", f"must be greater than the previous key's time {keys[-1]['time']:g}",
+                        key["time"])
+        keys.append({"time": t, "center": _vector(f"{kp}.center", key["center"], 3),
+                     "rotation": _vector(f"{kp}.rotation", key.get("rotation", [0.0, 0.0, 0.0]), 3)})
+    return keys
+
+
 def _obstacles(value: Any, base_dir: Path | None = None) -> list[dict[str, Any]]:
     """The ``[[obstacles]]`` array: one table per rigid obstacle (see :data:`OBSTACLE_SHAPES`)."""
     if not _is_list(value):
@@ -491,6 +519,14 @@ def _obstacles(value: Any, base_dir: Path | None = None) -> list[dict[str, Any]]
             o["center"] = _vector(f"{path}.center", d.get("center", [0.0, 0.0, 0.0]), 3)
         if "axis" in OBSTACLE_SHAPES[shape]:
             o["axis"] = _direction(f"{path}.axis", d.get("axis", [0.0, 0.0, 1.0]))
+        if "keyframes" in d:
+            place = _OBSTACLE_PLACE.get(shape, "center")
+            for key in ("velocity", "angular_velocity", place):
+                if key in d:
+                    raise _fail(f"{path}.{key}", "cannot be combined with keyframes (the keys give the "
+                                "obstacle's position and motion)", d[key])
+            o["keyframes"] = _keyframes(f"{path}.keyframes", d["keyframes"])
+            o[place] = list(o["keyframes"][0]["center"])
         o["velocity"] = _vector(f"{path}.velocity", d.get("velocity", [0.0, 0.0, 0.0]), 3)
         o["angular_velocity"] = _vector(f"{path}.angular_velocity", d.get("angular_velocity", [0.0, 0.0, 0.0]), 3)
         o["friction"] = _number(f"{path}.friction", d.get("friction", 0.0), lo=0.0)

@@ -11,7 +11,9 @@ Anderson 2002, adapted to rigid obstacles):
 2. After the integrator proposes ``(x1, v1)`` (:meth:`Collider.respond`), with the
    start ``x0`` collision-free, per obstacle in its local frame (the cloth's start
    and end positions moved into the obstacle's frame at ``t0`` and ``t1``, i.e.
-   linear relative motion):
+   linear relative motion; a keyframe inside the step is approximated by the
+   chord from the pose at ``t0`` to the pose at ``t1``, see
+   :class:`~implicit_cloth.collision.shapes.RigidMotion`):
 
    a. friction of the constrained contacts from the normal impulse of the solve;
    b. vertex sweeps: a vertex whose path comes within ``thickness / 2`` of the
@@ -50,13 +52,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from . import broadphase, ccd
 from .features import FeatureStages, edge_minimum
 from .mesh import MeshStages
 from .response import SETTLE_FRACTION, impulse
-from .shapes import MeshShape, Motion, Plane, Shape, build, local_aabb
+from .shapes import MeshShape, Plane, RigidMotion, Shape, build, local_aabb
 
 #: A vertex path that comes within this fraction of the thickness counts as an impact.
 IMPACT_FRACTION = 0.5
@@ -71,7 +72,7 @@ class Obstacle:
     """One rigid obstacle: its shape (local frame), its motion and its friction coefficient."""
 
     shape: Shape
-    motion: Motion
+    motion: RigidMotion
     friction: float
     spec: dict[str, Any] = field(default_factory=dict)
 
@@ -370,24 +371,16 @@ class Collider(FeatureStages, MeshStages):
         return busy, s_min, cand, contacts
 
     @staticmethod
-    def _world_at(mo: Motion, q: np.ndarray, n_loc: np.ndarray, tc: np.ndarray):
-        """World points, normals and obstacle velocities at per-point times ``tc``."""
-        if not mo.moving:
-            c, R = mo.pose(0.0)
-            xc = q @ R.T + c
-            return xc, n_loc @ R.T, np.zeros_like(xc)
-        xc = np.empty_like(q)
-        n_w = np.empty_like(q)
-        if np.any(mo.angular_velocity):   # one rotation per contact time
-            R = Rotation.from_rotvec(tc[:, None] * mo.angular_velocity).as_matrix() @ mo.rotation
-            xc = np.einsum("kij,kj->ki", R, q) + mo.center + tc[:, None] * mo.velocity
-            n_w = np.einsum("kij,kj->ki", R, n_loc)
-        else:
-            _, R = mo.pose(0.0)
-            xc = q @ R.T + mo.center + tc[:, None] * mo.velocity
-            n_w = n_loc @ R.T
-        u = mo.velocity + np.cross(mo.angular_velocity, xc - (mo.center + tc[:, None] * mo.velocity))
-        return xc, n_w, u
+    def _world_at(mo: RigidMotion, q: np.ndarray, n_loc: np.ndarray, tc: np.ndarray):
+        """World points, normals and obstacle velocities (K, 3) of local points and normals at per-point times ``tc``.
+
+        ``x = c(tc) + R(tc) q``, ``n = R(tc) n_loc``, ``u = dc/dt + omega x (x - c)``: one pose per contact
+        time, vectorised (:meth:`RigidMotion.pose` and :meth:`RigidMotion.point_velocity` take arrays of times).
+        """
+        c, R = mo.pose(tc)
+        xc = np.einsum("kij,kj->ki", R, q) + c
+        n_w = np.einsum("kij,kj->ki", R, n_loc)
+        return xc, n_w, mo.point_velocity(xc, tc)
 
     def _record(self, idx: np.ndarray, n: np.ndarray, un: np.ndarray) -> None:
         """Remember vertices held by an edge or corner contact in this step (constrained in the next solve)."""

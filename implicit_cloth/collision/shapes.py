@@ -1,8 +1,9 @@
 """Primitive obstacles: signed distance, outward normal, sharp features and continuous sweeps.
 
 Every shape is described in its own *local* frame (centre at the origin, the
-shape's axis along +z) and placed in the world by a :class:`Motion` (a rigid
-motion: position and rotation at time ``t``). All functions take local points
+shape's axis along +z) and placed in the world by a :class:`RigidMotion` (position
+and rotation at time ``t``: :class:`Motion` for a constant velocity and angular
+velocity, :class:`KeyframedMotion` for keyframes). All functions take local points
 ``p`` as (K, 3) arrays, metres, and are vectorised over K.
 
 Signed distance ``phi(p)`` (m) is negative inside, zero on the surface and
@@ -60,12 +61,66 @@ def _unit(a: np.ndarray, fallback: np.ndarray | None = None) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- motion
-@dataclass
-class Motion:
+class RigidMotion:
     """Rigid motion of an obstacle: ``x = c(t) + R(t) p`` for a local point ``p``.
 
-    ``c(t) = center + velocity t`` (m), ``R(t) = exp(t [omega]x) R0``: a constant
-    angular velocity ``omega`` (rad/s, world frame) about the moving centre.
+    The collision code asks a motion only through these methods, each vectorised
+    over times: ``t`` is a float (results for that instant) or a (K,) array (one
+    result per row, e.g. per contact time). Subclasses implement :meth:`pose` and
+    :meth:`twist`.
+
+    Within one time step the collision code treats the obstacle's motion relative
+    to the cloth as linear: the cloth's start and end positions are moved into the
+    obstacle's frame at ``pose(t0)`` and ``pose(t1)`` and joined by a straight
+    path there. A motion whose velocity changes inside a step (a keyframe of
+    :class:`KeyframedMotion` between ``t0`` and ``t1``) is then approximated by
+    its chord from ``pose(t0)`` to ``pose(t1)``; contact points, normals and
+    obstacle velocities at a time of impact ``tc`` still use the exact
+    ``pose(tc)`` and ``twist(tc)``.
+    """
+
+    @property
+    def moving(self) -> bool:
+        """Whether the obstacle ever moves."""
+        raise NotImplementedError
+
+    def pose(self, t) -> tuple[np.ndarray, np.ndarray]:
+        """Centre ``c(t)`` (..., 3) m and rotation matrix ``R(t)`` (..., 3, 3) at time(s) ``t`` (s)."""
+        raise NotImplementedError
+
+    def twist(self, t) -> tuple[np.ndarray, np.ndarray]:
+        """Velocity of the centre ``dc/dt`` (..., 3) m/s and angular velocity ``omega`` (..., 3) rad/s.
+
+        ``omega`` is in world axes: ``dR/dt = [omega]x R``.
+        """
+        raise NotImplementedError
+
+    def to_local(self, x: np.ndarray, t) -> np.ndarray:
+        """World points (K, 3) to local coordinates ``R^T (x - c)`` at time ``t`` (float or (K,))."""
+        c, R = self.pose(t)
+        if R.ndim == 2:
+            return (x - c) @ R
+        return np.einsum("kji,kj->ki", R, x - c)
+
+    def to_world(self, p: np.ndarray, t) -> np.ndarray:
+        """Local points (K, 3) to world coordinates ``c + R p`` at time ``t`` (float or (K,))."""
+        c, R = self.pose(t)
+        if R.ndim == 2:
+            return p @ R.T + c
+        return np.einsum("kij,kj->ki", R, p) + c
+
+    def point_velocity(self, x: np.ndarray, t) -> np.ndarray:
+        """Velocity (K, 3) m/s of the obstacle's material point at world ``x``: ``dc/dt + omega x (x - c)``."""
+        c, _ = self.pose(t)
+        v, w = self.twist(t)
+        return v + np.cross(w, x - c)
+
+
+@dataclass
+class Motion(RigidMotion):
+    """Constant twist: ``c(t) = center + velocity t`` (m), ``R(t) = exp(t [omega]x) R0``.
+
+    A constant angular velocity ``omega`` (rad/s, world frame) about the moving centre.
     """
 
     center: np.ndarray
@@ -77,28 +132,82 @@ class Motion:
     def moving(self) -> bool:
         return bool(np.any(self.velocity) or np.any(self.angular_velocity))
 
-    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Centre (3,) m and rotation matrix (3, 3) at time ``t``."""
-        c = self.center + self.velocity * t
+    def pose(self, t) -> tuple[np.ndarray, np.ndarray]:
+        t = np.asarray(t, dtype=float)
+        c = self.center + t[..., None] * self.velocity
         if np.any(self.angular_velocity):
-            R = Rotation.from_rotvec(self.angular_velocity * t).as_matrix() @ self.rotation
+            R = Rotation.from_rotvec(t[..., None] * self.angular_velocity).as_matrix() @ self.rotation
         else:
-            R = self.rotation
+            R = np.broadcast_to(self.rotation, t.shape + (3, 3))
         return c, R
 
-    def to_local(self, x: np.ndarray, t: float) -> np.ndarray:
-        """World points (K, 3) to local coordinates ``R^T (x - c)`` at time ``t``."""
-        c, R = self.pose(t)
-        return (x - c) @ R
+    def twist(self, t) -> tuple[np.ndarray, np.ndarray]:
+        shape = np.shape(t) + (3,)
+        return np.broadcast_to(self.velocity, shape), np.broadcast_to(self.angular_velocity, shape)
 
-    def to_world(self, p: np.ndarray, t: float) -> np.ndarray:
-        c, R = self.pose(t)
-        return p @ R.T + c
 
-    def point_velocity(self, x: np.ndarray, t: float) -> np.ndarray:
-        """Velocity (K, 3) m/s of the obstacle's material point at world ``x``: ``v + omega x (x - c)``."""
-        c, _ = self.pose(t)
-        return self.velocity + np.cross(self.angular_velocity, x - c)
+class KeyframedMotion(RigidMotion):
+    """Piecewise motion through keys ``(t_k, c_k, Q_k)``: ``c(t)`` piecewise linear, ``R(t) = Q(t) R0``.
+
+    Between keys ``t_k <= t < t_{k+1}`` the centre moves at the constant velocity
+    ``(c_{k+1} - c_k) / (t_{k+1} - t_k)`` and the key rotation ``Q`` turns by
+    spherical linear interpolation (:class:`scipy.spatial.transform.Slerp`) at the
+    constant world angular velocity ``omega_k = log(Q_{k+1} Q_k^T) / (t_{k+1} - t_k)``
+    (the shorter way round: a turn of more than pi between two keys needs a key
+    in between). ``R0`` is the shape's own orientation, ``Q_k`` each key's
+    rotation on top of it, about the centre. Before the first key the obstacle
+    rests at it, after the last at the last. At a key's time the velocity is that
+    of the segment starting there.
+
+    Parameters
+    ----------
+    times : (n,) array
+        Strictly increasing key times, s, n >= 2.
+    centers : (n, 3) array
+        The centre at each key, m.
+    rotvecs : (n, 3) array
+        Each key's rotation vector (axis * angle), rad.
+    rotation : (3, 3) array
+        The shape's own orientation ``R0``.
+    """
+
+    def __init__(self, times, centers, rotvecs, rotation=None) -> None:
+        from scipy.spatial.transform import Slerp
+
+        self.times = np.asarray(times, dtype=float)
+        self.centers = np.asarray(centers, dtype=float)
+        self.rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
+        if len(self.times) < 2 or np.any(np.diff(self.times) <= 0):
+            raise ValueError("keyframe times must be at least two, strictly increasing")
+        keys = Rotation.from_rotvec(np.asarray(rotvecs, dtype=float))
+        self._slerp = Slerp(self.times, keys)
+        dt = np.diff(self.times)
+        self._velocity = np.diff(self.centers, axis=0) / dt[:, None]                  # (n-1, 3) m/s
+        self._omega = (keys[1:] * keys[:-1].inv()).as_rotvec() / dt[:, None]         # (n-1, 3) rad/s
+
+    @property
+    def moving(self) -> bool:
+        return bool(np.any(self._velocity) or np.any(self._omega))
+
+    def _segment(self, t) -> tuple[np.ndarray, np.ndarray]:
+        """Times clamped to the keys' span, and the segment index of each (the one starting at or before it)."""
+        tc = np.clip(np.asarray(t, dtype=float), self.times[0], self.times[-1])
+        k = np.clip(np.searchsorted(self.times, tc, side="right") - 1, 0, len(self.times) - 2)
+        return tc, k
+
+    def pose(self, t) -> tuple[np.ndarray, np.ndarray]:
+        tc, k = self._segment(t)
+        a = (tc - self.times[k]) / (self.times[k + 1] - self.times[k])
+        a = a[..., None]
+        c = (1.0 - a) * self.centers[k] + a * self.centers[k + 1]   # exactly the keys at a = 0 and 1
+        R = self._slerp(tc).as_matrix() @ self.rotation
+        return c, R
+
+    def twist(self, t) -> tuple[np.ndarray, np.ndarray]:
+        t = np.asarray(t, dtype=float)
+        _, k = self._segment(t)
+        inside = ((t >= self.times[0]) & (t < self.times[-1]))[..., None]
+        return np.where(inside, self._velocity[k], 0.0), np.where(inside, self._omega[k], 0.0)
 
 
 # --------------------------------------------------------------------------- shapes
@@ -390,13 +499,21 @@ def rotation_to_axis(axis) -> np.ndarray:
     return Rotation.from_rotvec(v / s * np.arctan2(s, c)).as_matrix()
 
 
-def build(spec: dict) -> tuple[Shape, Motion]:
+def _motion(spec: dict, center: np.ndarray, R: np.ndarray) -> RigidMotion:
+    """Keyframed motion if the table has ``keyframes``, else constant velocity and angular velocity."""
+    keys = spec.get("keyframes")
+    if keys:
+        return KeyframedMotion([k["time"] for k in keys], [k["center"] for k in keys],
+                               [k["rotation"] for k in keys], R)
+    return Motion(center, R, np.asarray(spec["velocity"], dtype=float),
+                  np.asarray(spec["angular_velocity"], dtype=float))
+
+
+def build(spec: dict) -> tuple[Shape, RigidMotion]:
     """The shape and its motion from one validated ``[[obstacles]]`` table."""
     kind = spec["shape"]
-    vel = np.asarray(spec["velocity"], dtype=float)
-    omega = np.asarray(spec["angular_velocity"], dtype=float)
     if kind == "plane":
-        return Plane(), Motion(np.asarray(spec["point"], float), rotation_to_axis(spec["normal"]), vel, omega)
+        return Plane(), _motion(spec, np.asarray(spec["point"], float), rotation_to_axis(spec["normal"]))
     center = np.asarray(spec.get("center", spec.get("translation")), dtype=float)
     if kind == "sphere":
         shape: Shape = Sphere(spec["radius"])
@@ -419,4 +536,4 @@ def build(spec: dict) -> tuple[Shape, Motion]:
         R = Rotation.from_rotvec(spec["rotation"]).as_matrix()
     else:  # pragma: no cover - validation refuses other shapes
         raise ValueError(f"unknown obstacle shape {kind!r}")
-    return shape, Motion(center, R, vel, omega)
+    return shape, _motion(spec, center, R)
