@@ -86,10 +86,13 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
         if m not in allowed:
             raise SceneError(f"--metrics[{k}]: must be one of {', '.join(allowed)}, got {_fmt(m)}")
 
-    group_keys = [by] if by is not None else [k for k in keys if k != x]
+    # one line per combination of the keys other than x (so that a line never mixes cases);
+    # with --by, lines share the colour (and the legend entry) of their --by value
+    group_keys = ([by] if by is not None else []) + [k for k in keys if k not in (x, by)]
     groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault(tuple(_label(r.get(k)) for k in group_keys), []).append(r)
+    colours = {v: n for n, v in enumerate(dict.fromkeys(g[0] for g in sorted(groups)))} if by else {}
 
     target = Path(plots) if plots is not None else Path(out) / "compare"
     target.mkdir(parents=True, exist_ok=True)
@@ -100,7 +103,9 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
         fig = Figure(figsize=(6.4, 4.4), dpi=100)
         FigureCanvasAgg(fig)
         ax = fig.add_subplot(1, 1, 1)
-        ys_all = []
+        labelled: set[str] = set()
+        crosses: list[tuple[np.ndarray, np.ndarray]] = []
+        ok_values: list[float] = []
         for g, (name, members) in enumerate(sorted(groups.items())):
             pts = sorted((r[x], r.get(m), r["status"]) for r in members if r.get(m) is not None)
             if not pts:
@@ -108,20 +113,45 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
             px = np.array([p[0] for p in pts], float)
             py = np.array([p[1] for p in pts], float)
             ok = np.array([p[2] == "ok" for p in pts])
-            label = ", ".join(f"{k.split('.')[-1]}={v}" for k, v in zip(group_keys, name)) or "all"
-            line, = ax.plot(px[ok], py[ok], "o-", label=label, color=f"C{g % 10}")
+            if by is not None:
+                colour = f"C{colours[name[0]] % 10}"
+                label = f"{by.split('.')[-1]}={name[0]}"
+                label = label if label not in labelled else None
+            else:
+                colour = f"C{g % 10}"
+                label = ", ".join(f"{k.split('.')[-1]}={v}" for k, v in zip(group_keys, name)) or "all"
+            if label is not None:
+                labelled.add(label)
+                if not np.any(ok):          # keep the legend entry even if this line has no ok point
+                    ax.plot([], [], "o-", color=colour, label=label)
+                    label = None
+            ax.plot(px[ok], py[ok], "o-", label=label, color=colour, alpha=0.8)
+            ok_values.extend(py[ok])
             if np.any(~ok):
-                ax.plot(px[~ok], py[~ok], "x", color="red", markersize=9, mew=2)
-            ys_all.extend(py)
-        if any("diverged" == r["status"] and r.get(m) is not None for r in rows):
-            ax.plot([], [], "x", color="red", mew=2, label="diverged (partial run)")
-        ys = np.array(ys_all, float)
+                crosses.append((px[~ok], py[~ok]))
         if log_x:
             ax.set_xscale("log")
-        if len(ys) and np.all(ys > 0) and ys.max() / ys.min() > 100:
-            ax.set_yscale("log")
-        elif len(ys) and np.ptp(ys) > 0 and np.max(np.abs(ys)) / max(np.min(np.abs(ys[ys != 0])) if np.any(ys != 0) else 1, 1e-300) > 1e3:
-            ax.set_yscale("symlog", linthresh=float(np.percentile(np.abs(ys[ys != 0]), 10)))
+        ys = np.array(ok_values, float)
+        ys = ys[np.isfinite(ys)]
+        clipped = False
+        if len(ys):      # the axis fits the ok cases; a diverged case beyond it is drawn at its edge
+            log_y = bool(np.all(ys > 0) and ys.max() / ys.min() > 100)
+            if log_y:
+                ax.set_yscale("log")
+                lo, hi = ys.min() / 1.5, ys.max() * 1.5
+            else:
+                pad = 0.08 * (np.ptp(ys) or max(abs(ys.max()), 1e-12))
+                lo, hi = ys.min() - pad, ys.max() + pad
+            ax.set_ylim(lo, hi)
+            for cx, cy in crosses:
+                clipped |= bool(np.any((cy < lo) | (cy > hi)))
+                ax.plot(cx, np.clip(cy, lo, hi), "x", color="red", markersize=9, mew=2, clip_on=False)
+        else:
+            for cx, cy in crosses:
+                ax.plot(cx, cy, "x", color="red", markersize=9, mew=2)
+        if crosses:
+            ax.plot([], [], "x", color="red", mew=2,
+                    label="diverged (partial run" + ("; beyond the axis: at its edge)" if clipped else ")"))
         unit = UNITS.get(m)
         ax.set_xlabel(x)
         ax.set_ylabel(m + (f" ({unit})" if unit else ""))

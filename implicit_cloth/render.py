@@ -181,8 +181,9 @@ class _Renderer:
             for ob in self._obstacle_tris(float(self.times[f])):
                 tris.append(ob)
                 colors.append(_shade(ob, OBSTACLE_COLOR))
-            coll = Poly3DCollection(np.concatenate(tris), facecolors=np.concatenate(colors),
-                                    edgecolors="none", linewidths=0)
+            shade = np.concatenate(colors)
+            coll = Poly3DCollection(np.concatenate(tris), facecolors=shade,
+                                    edgecolors=shade, linewidths=0.3)   # edges in the face colour: no seams
             ax.add_collection3d(coll)
             c, h = self.center, self.half
             ax.set_xlim(c[0] - h, c[0] + h)

@@ -188,12 +188,14 @@ def test_diverged_and_failed_cases_are_recorded_and_the_sweep_goes_on(tmp_path):
     assert (out / sweep.cases[0].case_id / MARKER).stat().st_mtime_ns == before
 
 
-def test_summary_columns_and_values(tmp_path):
+def test_summary_columns_and_values(tmp_path, capsys):
     p = make(tmp_path, 'base = "base.toml"\n[sweep]\n"simulation.integrator" = ["backward_euler", "verlet"]\n'
                        '"simulation.dt" = [0.001]\n')
     sweep = load_sweep(p)
     out = tmp_path / "out"
-    run_sweep(sweep, out, workers=1)
+    run_sweep(sweep, out, workers=1, progress=True)
+    bar = capsys.readouterr().err.split("\r")[-1]          # the progress bar's last state
+    assert "2/2" in bar and "ok=2, diverged=0, failed=0" in bar
     cols, rows = read_csv(out / "summary.csv")
     assert cols == ["case_id", "simulation.integrator", "simulation.dt", "status", "reason", "wall_s",
                     "steps", "energy_drift", "energy_drift_rel", "max_strain", "mean_iterations",
@@ -336,8 +338,15 @@ def test_local_and_dask_cluster_give_identical_results(tmp_path):
     sweep = load_sweep(p)
     local = run_sweep(sweep, tmp_path / "local", workers=2)
     with distributed.LocalCluster(processes=True, n_workers=2, threads_per_worker=1, dashboard_address=None,
-                                  silence_logs=40) as cluster, distributed.Client(cluster) as client:
-        remote = run_sweep(sweep, tmp_path / "cluster", client=client)
+                                  silence_logs=40) as cluster:
+        # through the command line, as a user would: batch connects its own client to the scheduler
+        assert main(["batch", str(p), "--out", str(tmp_path / "cluster"), "--scheduler",
+                     cluster.scheduler_address, "--no-progress"]) == 0
+        # and again: every case is found finished, nothing is sent
+        with distributed.Client(cluster) as client:
+            again = run_sweep(sweep, tmp_path / "cluster", client=client)
+    assert again.skipped == 8
+    remote = again
     assert local.counts == remote.counts == {"ok": 8, "diverged": 0, "failed": 0, "pending": 0}
     for case in sweep.cases:
         a, b = dict(local.rows[case.case_id]), dict(remote.rows[case.case_id])
@@ -352,6 +361,17 @@ def test_local_and_dask_cluster_give_identical_results(tmp_path):
         ra.pop("wall_s"), rb.pop("wall_s")
     assert ja["cases"] == jb["cases"]
     check_all_loadable(tmp_path / "cluster")
+
+
+def test_unreachable_scheduler_is_a_one_line_error(tmp_path, capsys):
+    pytest.importorskip("distributed")
+    p = make(tmp_path, 'base = "base.toml"\n[sweep]\n"simulation.dt" = [0.01]\n')
+    assert main(["batch", str(p), "--out", str(tmp_path / "o"), "--scheduler", "nonsense://x"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("implicit-cloth: error: --scheduler: cannot connect")
+    assert err[0].endswith("got 'nonsense://x'")
+    _, rows = read_csv(tmp_path / "o" / "summary.csv")
+    assert [r["status"] for r in rows] == ["pending"]
 
 
 def test_cli_batch_output_and_locked_directory(tmp_path, capsys):
