@@ -50,12 +50,11 @@ import re
 import signal
 import sys
 import time
-import traceback
 import warnings
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from .errors import DivergenceError, SceneError
 from .io import atomic_write, save_json

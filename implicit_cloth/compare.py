@@ -6,7 +6,6 @@ Needs matplotlib (the ``render`` extra). Drawn on an Agg canvas, headless.
 from __future__ import annotations
 
 import io
-import math
 import numbers
 import os
 from pathlib import Path
