@@ -574,6 +574,14 @@ class _Lock:
             os.close(self.fd)
 
 
+def _cpus() -> int:
+    """CPUs this process may run on (its affinity where the OS tells it), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
 def _worker_init() -> None:
     """Local worker set-up: one BLAS thread; die with the parent (Linux), so no orphan keeps writing."""
     _pin_blas()
@@ -599,7 +607,7 @@ def run_sweep(sweep: Sweep, out: str | os.PathLike[str], *, workers: int | None 
     out : path
         Output directory (created). Cases already finished there are skipped.
     workers : int, optional
-        Local worker processes (default: the number of CPUs). Ignored with a cluster.
+        Local worker processes (default: the CPUs this process may use). Ignored with a cluster.
     scheduler : str, optional
         Address of a Dask scheduler (``tcp://host:port``): run the cases there.
         Workers return their results and this process writes them, so the
@@ -673,7 +681,7 @@ def run_sweep(sweep: Sweep, out: str | os.PathLike[str], *, workers: int | None 
                 if scheduler is not None or client is not None:
                     _run_dask(todo, out, scheduler, client, finished, note)
                 else:
-                    _run_local(todo, out, workers or os.cpu_count() or 1, finished, note, max_restarts)
+                    _run_local(todo, out, workers or _cpus(), finished, note, max_restarts)
         finally:
             if bar is not None:
                 bar.close()

@@ -270,10 +270,11 @@ def _children(pid: int) -> list[tuple[int, str]]:
     return out
 
 
-TWELVE = """\
+# 8 cases of about 0.5-0.8 s of CPU each (10 x 10 cloth, 200-300 steps): long enough to be killed part way
+SLOW_EIGHT = """\
 base = "base.toml"
 [sweep]
-"simulation.dt" = [0.004, 0.005, 0.006]
+"simulation.dt" = [0.002, 0.003]
 "cloth.springs.structural.stiffness" = [300.0, 400.0, 500.0, 600.0]
 """
 
@@ -281,9 +282,9 @@ base = "base.toml"
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses process groups and /proc")
 def test_interrupted_sweep_resumes_to_completion(tmp_path):
     """SIGINT, then SIGKILL of one worker, then SIGKILL of the whole run; a final run completes the sweep."""
-    p = make(tmp_path, TWELVE, n=8, duration=0.4)
+    p = make(tmp_path, SLOW_EIGHT, n=10, duration=0.6)
     out = tmp_path / "out"
-    total = 12
+    total = 8
 
     # 1. Ctrl-C (SIGINT to the process group, as a terminal sends it): exit 130, finished cases kept
     proc = _batch_process(p, out)
