@@ -57,7 +57,8 @@ def export_run(run_dir: str | os.PathLike[str], fmt: str = "obj", out: str | os.
     fmt : {"obj", "ply", "glb"}
         ``obj``/``ply``: one file per frame, ``frame_0000.obj`` ...; ``glb``:
         one binary glTF file ``frames.glb`` holding one mesh node per frame
-        (named ``frame_0000`` ..., each node's name in its extras with the time).
+        (named ``frame_0000`` ..., the frame's time in s in the mesh's extras
+        as ``time``; trimesh reads it back into ``geometry.metadata["time"]``).
     out : path, optional
         Output directory (default ``RUN_DIR/export``).
     frames : list of int, optional

@@ -51,6 +51,8 @@ def test_export_obj_ply_glb_open_in_trimesh(run_dir, capsys):
     assert len(scene.geometry) == len(pos)
     g = scene.geometry["frame_0003"]
     np.testing.assert_allclose(g.vertices, pos[3], atol=1e-6)     # glb stores float32
+    with np.load(run_dir / "trajectory.npz") as z:
+        assert g.metadata["time"] == pytest.approx(z["times"][3])
     assert [p.name for p in (run_dir / "export").glob("*.glb")] == ["frames.glb"]   # glb: one file
     assert "wrote 1 glb file to" in capsys.readouterr().out
     assert not [p for p in (run_dir / "export").iterdir() if p.name.startswith(".")]
