@@ -256,17 +256,16 @@ def sweep_from_dict(data: Mapping[str, Any], base_dir: str | os.PathLike[str] | 
     base_raw = base_scene.source
     scene_dir = base_scene.base_dir
 
-    fixed = data.get("set", {})
-    _check_table("set", fixed)
+    fixed = _flat("set", data.get("set", {}))
     if fixed:
         base_scene = _apply(base_raw, fixed, scene_dir, lambda k: f"set.{k}")
         base_raw = base_scene.source
 
-    sweep = data.get("sweep", {})
-    _check_table("sweep", sweep)
+    sweep = _flat("sweep", data.get("sweep", {}))
     explicit = data.get("cases", [])
     if not isinstance(explicit, list) or not all(isinstance(c, Mapping) for c in explicit):
         raise _fail("cases", "must be a list of tables ([[cases]] with dotted keys)", explicit)
+    explicit = [_flat(f"cases[{n}]", c) for n, c in enumerate(explicit)]
     if not sweep and not explicit:
         raise SceneError("sweep: missing (a sweep file needs a [sweep] table of keys and value lists, "
                          "or [[cases]])")
@@ -310,15 +309,33 @@ def sweep_from_dict(data: Mapping[str, Any], base_dir: str | os.PathLike[str] | 
     return result
 
 
-def _check_table(path: str, table: Any) -> None:
+def _flat(path: str, table: Any) -> dict[str, Any]:
+    """A table of dotted keys, with nested tables flattened into dotted keys.
+
+    TOML reads an unquoted ``simulation.dt = [...]`` (or a ``[sweep.simulation]``
+    table) as nested tables; both mean the same as the quoted ``"simulation.dt"``.
+    """
     if not isinstance(table, Mapping):
         raise _fail(path, "must be a table of dotted scene keys", table)
-    for key in table:
-        try:
-            _segments(key)
-        except ValueError:
-            raise _fail(f"{path}.{key}", "not a dotted scene key (e.g. simulation.dt, obstacles[0].radius)",
-                        key) from None
+    out: dict[str, Any] = {}
+
+    def walk(prefix: str, node: Mapping[str, Any]) -> None:
+        for key, value in node.items():
+            full = f"{prefix}.{key}" if prefix else str(key)
+            try:
+                _segments(full)
+            except ValueError:
+                raise _fail(f"{path}.{full}", "not a dotted scene key (e.g. simulation.dt, obstacles[0].radius)",
+                            full) from None
+            if isinstance(value, Mapping) and value:
+                walk(full, value)
+            elif full in out:
+                raise _fail(f"{path}.{full}", "given twice (quoted and as a table)", value)
+            else:
+                out[full] = value
+
+    walk("", table)
+    return out
 
 
 # --------------------------------------------------------------------------- running one case

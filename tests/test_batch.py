@@ -103,6 +103,18 @@ def test_product_and_explicit_cases_with_stable_ids(tmp_path):
     assert not {c.case_id for c in load_sweep(p).cases} & {c.case_id for c in sweep.cases}
 
 
+def test_unquoted_dotted_keys_mean_the_same(tmp_path):
+    quoted = load_sweep(make(tmp_path, EIGHT))
+    bare = load_sweep(make(tmp_path, 'base = "base.toml"\n[sweep]\nsimulation.dt = [0.01, 0.02]\n'
+                                     'simulation.integrator = ["backward_euler", "bdf2"]\n'
+                                     '[sweep.cloth.springs.structural]\nstiffness = [300.0, 600.0]\n'))
+    assert bare.keys == quoted.keys
+    assert [c.case_id for c in bare.cases] == [c.case_id for c in quoted.cases]
+    with pytest.raises(SceneError, match=r"^sweep.simulation.dt: given twice"):
+        load_sweep(make(tmp_path, 'base = "base.toml"\n[sweep]\n"simulation.dt" = [0.01]\n'
+                                  'simulation.dt = [0.02]\n'))
+
+
 @pytest.mark.parametrize("text, message", [
     ('base = "base.toml"\n[sweep]\n"simulation.dtt" = [0.01]\n',
      "sweep.simulation.dtt: unknown key (did you mean 'dt'?)"),
