@@ -345,6 +345,37 @@ def test_interrupted_sweep_resumes_to_completion(tmp_path):
     assert strip(rows1) == strip(rows)
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc")
+def test_worker_deaths_beyond_the_limit_stop_cleanly(tmp_path):
+    """With max_restarts=0 a killed worker stops the run: nothing false recorded, the rest pending, resumable."""
+    import threading
+
+    p = make(tmp_path, SLOW_EIGHT, n=10, duration=0.6)
+    sweep = load_sweep(p)
+    out = tmp_path / "out"
+    before = {pid for pid, _ in _children(os.getpid())}
+    result: dict[str, object] = {}
+    thread = threading.Thread(target=lambda: result.update(r=run_sweep(sweep, out, workers=2, max_restarts=0)))
+    thread.start()
+    t0 = time.monotonic()
+    while _count_markers(out) < 1 and thread.is_alive() and time.monotonic() - t0 < 120:
+        time.sleep(0.02)
+    workers = [pid for pid, cmd in _children(os.getpid()) if "spawn_main" in cmd and pid not in before]
+    assert workers and thread.is_alive(), "the sweep ended too soon"
+    os.kill(workers[0], signal.SIGKILL)
+    thread.join(timeout=120)
+    res = result["r"]
+    assert res.counts["pending"] > 0 and res.counts["ok"] + res.counts["pending"] == 8
+    assert res.counts["failed"] == res.counts["diverged"] == 0            # nothing false recorded
+    assert any("stopping with" in n for n in res.notes)
+    _, rows = read_csv(out / "summary.csv")
+    assert sum(r["status"] == "pending" for r in rows) == res.counts["pending"]
+    check_all_loadable(out)
+    again = run_sweep(sweep, out, workers=2)
+    assert again.skipped == res.counts["ok"] and again.counts["ok"] == 8
+    check_all_loadable(out)
+
+
 def test_local_and_dask_cluster_give_identical_results(tmp_path):
     distributed = pytest.importorskip("distributed")
     p = make(tmp_path, EIGHT)
