@@ -737,21 +737,24 @@ def _run_local(todo: Sequence[Case], out: Path, workers: int, finished: Callable
                     break
                 done, _ = wait(inflight, return_when=FIRST_COMPLETED)
                 for fut in done:
-                    case = inflight.pop(fut)
                     try:
-                        finished(fut.result())
+                        row = fut.result()     # a KeyboardInterrupt from the worker leaves the case in flight
                     except BrokenProcessPool:
                         broken = True
+                        case = inflight.pop(fut)
                         queue.appendleft(case)
                         lost.append(case)
+                        continue
+                    inflight.pop(fut)
+                    finished(row)
                 if broken and not inflight:
                     break
+            pool.shutdown(wait=True)
         except BaseException:
             _stop_pool(pool)
-            for case in inflight.values():   # their writers are gone: remove what they left
+            for case in [*inflight.values(), *lost]:   # their writers are gone: remove what they left
                 _clean(out / case.case_id)
             raise
-        pool.shutdown(wait=True)
         for case in lost:                    # its worker died: remove what it may have left (temporary files)
             _clean(out / case.case_id)
         if broken:
@@ -766,7 +769,7 @@ def _run_local(todo: Sequence[Case], out: Path, workers: int, finished: Callable
 
 def _stop_pool(pool: Any) -> None:
     """Stop a ProcessPoolExecutor now: cancel queued work and terminate its workers."""
-    procs = list(getattr(pool, "_processes", {}).values())   # no public handle on the workers
+    procs = list((getattr(pool, "_processes", None) or {}).values())   # no public handle on the workers
     pool.shutdown(wait=False, cancel_futures=True)
     for p in procs:
         try:
