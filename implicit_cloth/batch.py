@@ -426,12 +426,12 @@ def run_case(case: Case) -> dict[str, Any]:
     return result
 
 
-def _clean(case_dir: Path) -> None:
-    """Remove a case directory's marker and stray temporary files (from a killed writer)."""
+def _clean(case_dir: Path, marker: bool = True) -> None:
+    """Remove a case directory's stray temporary files (from a killed writer) and, if ``marker``, its marker."""
     if not case_dir.is_dir():
         return
     for p in case_dir.iterdir():
-        if p.name == MARKER or _TMP.match(p.name):
+        if (marker and p.name == MARKER) or _TMP.match(p.name):
             try:
                 p.unlink()
             except FileNotFoundError:
@@ -752,11 +752,10 @@ def _run_local(todo: Sequence[Case], out: Path, workers: int, finished: Callable
             pool.shutdown(wait=True)
         except BaseException:
             _stop_pool(pool)
-            for case in [*inflight.values(), *lost]:   # their writers are gone: remove what they left
-                _clean(out / case.case_id)
+            _salvage([*inflight.values(), *lost], out, finished)
             raise
-        for case in lost:                    # its worker died: remove what it may have left (temporary files)
-            _clean(out / case.case_id)
+        for case in _salvage(lost, out, finished):
+            queue.remove(case)
         if broken:
             restarts += 1
             if restarts > max_restarts:
@@ -765,6 +764,23 @@ def _run_local(todo: Sequence[Case], out: Path, workers: int, finished: Callable
                 return
             note(f"a worker process died (killed or out of memory); restarting the pool, "
                  f"{len(queue)} cases to go")
+
+
+def _salvage(cases: Sequence[Case], out: Path, finished: Callable[[dict[str, Any]], None]) -> list[Case]:
+    """After their workers are gone: remove the temporary files of ``cases``; record those that finished.
+
+    A worker may have written a case completely (marker last) and died, or been
+    interrupted, before its result reached this process: the marker, checked
+    against the files, says so. Returns the cases recorded.
+    """
+    done = []
+    for case in cases:
+        _clean(out / case.case_id, marker=False)
+        row = finished_row(out, case)
+        if row is not None:
+            finished(row)
+            done.append(case)
+    return done
 
 
 def _stop_pool(pool: Any) -> None:

@@ -245,6 +245,24 @@ def test_marker_is_trusted_only_with_matching_files(tmp_path):
     check_all_loadable(out)
 
 
+def test_salvage_keeps_a_finished_case_and_removes_temporaries(tmp_path):
+    """What the pool does with in-flight cases after their workers are gone (interrupted or killed)."""
+    from implicit_cloth.batch import _salvage, run_case, store_result
+
+    p = make(tmp_path, 'base = "base.toml"\n[sweep]\n"simulation.dt" = [0.01, 0.02]\n')
+    done_case, cut_case = load_sweep(p).cases
+    out = tmp_path / "out"
+    store_result(out, done_case, run_case(done_case))       # written completely, result never delivered
+    (out / done_case.case_id / ".trajectory.npz.x1.new").write_bytes(b"partial")
+    (out / cut_case.case_id).mkdir()                          # killed while writing
+    (out / cut_case.case_id / ".report.json.x2.tmp").write_text("{")
+    recorded: list[dict] = []
+    assert _salvage([done_case, cut_case], out, recorded.append) == [done_case]
+    assert [r["case_id"] for r in recorded] == [done_case.case_id] and recorded[0]["status"] == "ok"
+    assert sorted(p.name for p in (out / done_case.case_id).iterdir()) == [MARKER, "report.json", "trajectory.npz"]
+    assert list((out / cut_case.case_id).iterdir()) == []
+
+
 def _count_markers(out: Path) -> int:
     return sum(1 for _ in out.glob(f"*/{MARKER}")) if out.is_dir() else 0
 
