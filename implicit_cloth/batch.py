@@ -339,17 +339,19 @@ def _flat(path: str, table: Any) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- running one case
-_BLAS_PINNED = False
-
-
 def _pin_blas() -> None:
-    """Limit BLAS to one thread for the rest of this (worker) process: results do not depend on threads."""
-    global _BLAS_PINNED
-    if not _BLAS_PINNED:
-        from threadpoolctl import threadpool_limits
+    """Limit every loaded BLAS to one thread for the rest of this (worker) process.
 
-        threadpool_limits(limits=1, user_api="blas")
-        _BLAS_PINNED = True
+    Results then do not depend on threads, and two workers on two cores do not
+    run four BLAS threads. NumPy and SciPy wheels each bring their own OpenBLAS
+    and SciPy's is loaded only with ``scipy.linalg`` (measured: it stayed at 2
+    threads when the limit was set before that import), so that is imported
+    first; repeated for every case, it also catches a library loaded later.
+    """
+    import scipy.linalg  # noqa: F401 - loads SciPy's BLAS (the package imports it lazily) before the limit
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
 
 
 def _health(report: Mapping[str, Any]) -> dict[str, Any]:

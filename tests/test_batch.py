@@ -444,3 +444,17 @@ def test_cli_batch_output_and_locked_directory(tmp_path, capsys):
         fcntl.flock(f, fcntl.LOCK_EX)
         assert main(["batch", str(p), "--out", str(out), "--no-progress"]) == 2
     assert "another batch run is using this output directory" in capsys.readouterr().err
+
+
+def test_worker_set_up_pins_every_blas_to_one_thread():
+    """NumPy's and SciPy's own OpenBLAS both (SciPy's is loaded late, by scipy.linalg)."""
+    code = ("from implicit_cloth.batch import _worker_init; _worker_init(); "
+            "import implicit_cloth as ic; from threadpoolctl import threadpool_info; "
+            "ic.Simulator({'cloth': {'resolution': [4, 4], 'mass': 0.1, 'springs': {'structural': "
+            "{'stiffness': 10.0}}}}, duration=0.02).run(); "
+            "print(sorted((i['filepath'].rsplit('/', 1)[-1], i['num_threads']) for i in threadpool_info() "
+            "if i['user_api'] == 'blas'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env=dict(os.environ, PYTHONPATH=str(ROOT))).stdout
+    libs = eval(out)   # noqa: S307 - our own printed list
+    assert libs and all(n == 1 for _, n in libs), libs
