@@ -29,8 +29,11 @@ Exit codes
     ``trajectory.npz``, ``report.json`` has ``status`` ``"diverged"`` and the
     reason, and the reason is printed on stderr.
 
-The parser uses subcommands so that later ones (bench, batch, export, render)
-slot in beside ``run``.
+Other subcommands: ``bench`` (a benchmark of benchmarks/), ``batch`` (a
+parameter sweep, see :mod:`implicit_cloth.batch`), ``export`` (meshes of a
+run's frames), ``render`` (pictures of a run) and ``compare`` (plots of a
+sweep's summary); each follows the same exit codes, one-line errors and
+``--debug``.
 """
 
 from __future__ import annotations
@@ -100,6 +103,75 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("name", metavar="NAME", help="benchmark name: the file name in benchmarks/ without .py, e.g. scaling, stability, damping")
     bench.add_argument("args", nargs=argparse.REMAINDER, help="options passed to the benchmark")
     bench.set_defaults(handler=cmd_bench)
+
+    batch = sub.add_parser(
+        "batch", help="run a parameter sweep (locally or on a Dask cluster), resumable",
+        description="Run every case of a sweep file (a base scene and the keys to vary) and write "
+                    "DIR/<case-id>/{trajectory.npz,report.json} and DIR/summary.{csv,json}. Re-running the "
+                    "same command skips finished cases.",
+        epilog="Exit codes: 0 every case finished (ok, diverged or failed: see summary.csv), 1 results could "
+               "not be written or cases were left pending (run again to resume), 2 bad input, 130 interrupted.",
+    )
+    batch.add_argument("sweep", metavar="SWEEP.toml", help="sweep file")
+    batch.add_argument("--out", metavar="DIR", default=None, help="output directory (default: out/<sweep file stem>)")
+    batch.add_argument("--workers", metavar="N", type=int, default=None,
+                       help="local worker processes (default: the number of CPUs)")
+    batch.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                       help="run on a Dask cluster, e.g. tcp://host:8786 (needs the dask extra)")
+    batch.add_argument("--retry-failed", action="store_true", help="run again the cases recorded as failed")
+    batch.add_argument("--no-progress", action="store_true",
+                       help="no progress bar (it is only shown when stderr is a terminal)")
+    batch.add_argument("--debug", action="store_true", help="print tracebacks of errors")
+    batch.set_defaults(handler=cmd_batch)
+
+    export = sub.add_parser(
+        "export", help="write a run's frames as meshes (obj/ply per frame, glb one file)",
+        description="Export RUN_DIR/trajectory.npz as meshes with trimesh: obj or ply, one file per frame "
+                    "(frame_0000.obj ...), or glb, one file frames.glb with a node per frame. Metres.",
+    )
+    export.add_argument("run_dir", metavar="RUN_DIR", help="a run's output directory (run, or a batch case)")
+    export.add_argument("--format", default="obj", help="obj | ply | glb (default obj)")
+    export.add_argument("--out", metavar="DIR", default=None, help="output directory (default RUN_DIR/export)")
+    export.add_argument("--frames", metavar="K", type=int, nargs="+", default=None,
+                        help="frame indices to export (negative from the end; default all)")
+    export.add_argument("--debug", action="store_true", help="print tracebacks of errors")
+    export.set_defaults(handler=cmd_export)
+
+    render = sub.add_parser(
+        "render", help="draw a run: PNG of chosen frames and an animated GIF (or MP4)",
+        description="Draw RUN_DIR's cloth (and obstacles) headless with matplotlib: frames.png with the "
+                    "chosen frames side by side and movie.gif (Pillow) or movie.mp4 (ffmpeg). Needs the "
+                    "render extra.",
+    )
+    render.add_argument("run_dir", metavar="RUN_DIR", help="a run's output directory (run, or a batch case)")
+    render.add_argument("--out", metavar="DIR", default=None, help="output directory (default RUN_DIR/render)")
+    render.add_argument("--frames", metavar="K", type=int, nargs="+", default=None,
+                        help="frames of the PNG (negative from the end; default first, middle, last)")
+    render.add_argument("--movie", default="gif", help="gif | mp4 | none (default gif; mp4 needs ffmpeg)")
+    render.add_argument("--fps", type=float, default=15.0, help="movie frames per second (default 15)")
+    render.add_argument("--max-frames", type=int, default=120, dest="max_frames",
+                        help="at most this many movie frames, evenly spaced (default 120)")
+    render.add_argument("--dpi", type=int, default=80, help="resolution (default 80)")
+    render.add_argument("--elev", type=float, default=20.0, help="camera elevation, degrees (default 20)")
+    render.add_argument("--azim", type=float, default=-60.0, help="camera azimuth, degrees (default -60)")
+    render.add_argument("--debug", action="store_true", help="print tracebacks of errors")
+    render.set_defaults(handler=cmd_render)
+
+    compare = sub.add_parser(
+        "compare", help="plot a sweep's health figures against a swept key",
+        description="Turn DIR/summary.json of a batch into plots DIR/compare/<metric>_vs_<key>.png: each "
+                    "health figure against one swept key, one line per group. Needs matplotlib.",
+    )
+    compare.add_argument("dir", metavar="DIR", help="a batch output directory")
+    compare.add_argument("--x", metavar="KEY", default=None,
+                         help="swept key on the x axis (default simulation.dt if swept)")
+    compare.add_argument("--by", metavar="KEY", default=None,
+                         help="one line per value of this swept key (default: per combination of the others)")
+    compare.add_argument("--metrics", metavar="NAME", nargs="+", default=None,
+                         help="columns to plot (default energy_drift_rel max_strain mean_iterations wall_s)")
+    compare.add_argument("--out", metavar="DIR", default=None, help="where to write the plots (default DIR/compare)")
+    compare.add_argument("--debug", action="store_true", help="print tracebacks of errors")
+    compare.set_defaults(handler=cmd_compare)
     return parser
 
 
@@ -288,6 +360,139 @@ def cmd_bench(args: argparse.Namespace) -> int:
         return exc.code if isinstance(exc.code, int) else EXIT_BAD_INPUT
     finally:
         sys.path.remove(str(folder))
+
+
+# --------------------------------------------------------------------------- batch, export, render, compare
+def _out_dir(out: Path, debug: bool) -> bool:
+    """Create the output directory; print the one-line error and return False if it is unusable."""
+    if out.exists() and not out.is_dir():
+        _error(f"--out: {str(out)!r} exists and is not a directory")
+        return False
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _error(f"--out: cannot create output directory {str(out)!r} ({exc.strerror or exc})", debug)
+        return False
+    return True
+
+
+def _missing_extra(exc: ImportError, extra: str, debug: bool) -> int:
+    _error(f"this command needs the optional package {exc.name or exc} (pip install "
+           f"'implicit_cloth[{extra}]')", debug)
+    return EXIT_BAD_INPUT
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    """``implicit-cloth batch``: run a sweep's unfinished cases, write the summary, print the counts."""
+    from .batch import load_sweep, run_sweep
+
+    debug = bool(args.debug)
+    if args.workers is not None and args.workers < 1:
+        _error(f"--workers: must be an integer >= 1, got {args.workers}")
+        return EXIT_BAD_INPUT
+    try:
+        sweep = load_sweep(args.sweep)
+    except SceneError as exc:
+        _error(_one_line(exc), debug)
+        return EXIT_BAD_INPUT
+    out = Path(args.out) if args.out is not None else Path("out") / Path(args.sweep).stem
+    if not _out_dir(out, debug):
+        return EXIT_BAD_INPUT
+    progress = (not args.no_progress) and sys.stderr.isatty()
+    try:
+        result = run_sweep(sweep, out, workers=args.workers, scheduler=args.scheduler,
+                           retry_failed=args.retry_failed, progress=progress,
+                           on_note=lambda m: print(f"{PROG}: warning: {_one_line(m)}", file=sys.stderr))
+    except SceneError as exc:   # the output directory is locked, the scheduler cannot be reached
+        _error(_one_line(exc), debug)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        _error(f"cannot write results to {str(out)!r} ({exc.strerror or exc})", debug)
+        return EXIT_WRITE_FAILED
+    c = result.counts
+    print(f"cases        {len(sweep.cases)}: {c['ok']} ok, {c['diverged']} diverged, {c['failed']} failed, "
+          f"{c['pending']} pending ({result.skipped} already finished before this run)")
+    print(f"summary      {result.summary[0]}")
+    print(f"             {result.summary[1]}", flush=True)
+    if c["pending"]:
+        _error(f"{c['pending']} cases were not run; run the same command again to resume")
+        return EXIT_WRITE_FAILED
+    return EXIT_OK
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """``implicit-cloth export``: per-frame meshes of a run."""
+    from .export import export_run
+
+    debug = bool(args.debug)
+    if args.out is not None and not _out_dir(Path(args.out), debug):
+        return EXIT_BAD_INPUT
+    try:
+        files = export_run(args.run_dir, args.format, out=args.out, frames=args.frames)
+    except SceneError as exc:
+        _error(_one_line(exc), debug)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        _error(f"cannot write meshes ({exc.strerror or exc})", debug)
+        return EXIT_WRITE_FAILED
+    where = files[0].parent if files else args.out
+    print(f"wrote {len(files)} {args.format} file{'s' if len(files) != 1 else ''} to {where}", flush=True)
+    return EXIT_OK
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    """``implicit-cloth render``: PNG of chosen frames and a movie of a run."""
+    debug = bool(args.debug)
+    try:
+        from .render import render_run
+        import matplotlib  # noqa: F401
+    except ImportError as exc:
+        return _missing_extra(exc, "render", debug)
+    if args.out is not None and not _out_dir(Path(args.out), debug):
+        return EXIT_BAD_INPUT
+    caught: list[warnings.WarningMessage] = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("default")
+            files = render_run(args.run_dir, out=args.out, frames=args.frames, movie=args.movie, fps=args.fps,
+                               max_movie_frames=args.max_frames, dpi=args.dpi, elev=args.elev, azim=args.azim)
+    except ImportError as exc:
+        return _missing_extra(exc, "render", debug)
+    except SceneError as exc:
+        _error(_one_line(exc), debug)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        _error(f"cannot write pictures ({exc.strerror or exc})", debug)
+        return EXIT_WRITE_FAILED
+    finally:
+        for w in caught:
+            print(f"{PROG}: warning: {_one_line(w.message)}", file=sys.stderr)
+    for f in files:
+        print(f)
+    return EXIT_OK
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """``implicit-cloth compare``: plots of a sweep's summary."""
+    debug = bool(args.debug)
+    try:
+        from .compare import compare_sweep
+        import matplotlib  # noqa: F401
+    except ImportError as exc:
+        return _missing_extra(exc, "render", debug)
+    if args.out is not None and not _out_dir(Path(args.out), debug):
+        return EXIT_BAD_INPUT
+    try:
+        files = compare_sweep(args.dir, x=args.x, by=args.by, metrics=args.metrics, plots=args.out)
+    except SceneError as exc:
+        _error(_one_line(exc), debug)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        _error(f"cannot write plots ({exc.strerror or exc})", debug)
+        return EXIT_WRITE_FAILED
+    for f in files:
+        print(f)
+    return EXIT_OK
 
 
 # --------------------------------------------------------------------------- entry point

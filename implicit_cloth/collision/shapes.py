@@ -509,31 +509,45 @@ def _motion(spec: dict, center: np.ndarray, R: np.ndarray) -> RigidMotion:
                   np.asarray(spec["angular_velocity"], dtype=float))
 
 
+def placement(spec: dict) -> RigidMotion:
+    """The rigid motion (pose at every time) of one validated ``[[obstacles]]`` table, without its shape.
+
+    The local frame of each shape: see its class (sphere, box and capsule centred at the origin, the cone's base
+    centre at the origin and its apex on +z, the plane's surface z = 0 with outward normal +z, a mesh in its
+    file's coordinates times ``scale``).
+    """
+    kind = spec["shape"]
+    if kind == "plane":
+        return _motion(spec, np.asarray(spec["point"], float), rotation_to_axis(spec["normal"]))
+    if kind == "mesh":
+        return _motion(spec, np.asarray(spec["translation"], float), Rotation.from_rotvec(spec["rotation"]).as_matrix())
+    if kind == "box":
+        R = Rotation.from_rotvec(spec["rotation"]).as_matrix()
+    elif kind in ("capsule", "cone"):
+        R = rotation_to_axis(spec["axis"])
+    else:
+        R = np.eye(3)
+    return _motion(spec, np.asarray(spec["center"], dtype=float), R)
+
+
 def build(spec: dict) -> tuple[Shape, RigidMotion]:
     """The shape and its motion from one validated ``[[obstacles]]`` table."""
     kind = spec["shape"]
     if kind == "plane":
-        return Plane(), _motion(spec, np.asarray(spec["point"], float), rotation_to_axis(spec["normal"]))
-    center = np.asarray(spec.get("center", spec.get("translation")), dtype=float)
-    if kind == "sphere":
-        shape: Shape = Sphere(spec["radius"])
-        R = np.eye(3)
+        shape: Shape = Plane()
+    elif kind == "sphere":
+        shape = Sphere(spec["radius"])
     elif kind == "box":
         shape = Box(spec["size"])
-        R = Rotation.from_rotvec(spec["rotation"]).as_matrix()
     elif kind == "capsule":
         shape = Capsule(spec["radius"], spec["height"])
-        R = rotation_to_axis(spec["axis"])
     elif kind == "cone":
         shape = Cone(spec["radius"], spec["height"])
-        R = rotation_to_axis(spec["axis"])
     elif kind == "mesh":
         from ..scene import load_obstacle_mesh
 
         verts, faces = load_obstacle_mesh(spec["path"])
         shape = MeshShape(verts * spec["scale"], faces)
-        center = np.asarray(spec["translation"], dtype=float)
-        R = Rotation.from_rotvec(spec["rotation"]).as_matrix()
     else:  # pragma: no cover - validation refuses other shapes
         raise ValueError(f"unknown obstacle shape {kind!r}")
-    return shape, _motion(spec, center, R)
+    return shape, placement(spec)

@@ -1,0 +1,185 @@
+"""export (trimesh meshes), render (matplotlib + Pillow pictures, obstacles) and compare (sweep plots)."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import implicit_cloth as ic
+from implicit_cloth.cli import _write_outputs, main
+
+trimesh = pytest.importorskip("trimesh")
+PIL_Image = pytest.importorskip("PIL.Image")
+pytest.importorskip("matplotlib")
+
+from implicit_cloth.render import RenderWarning, obstacle_triangles, render_run  # noqa: E402
+
+
+@pytest.fixture
+def run_dir(tmp_path, hanging_scene):
+    """A short run of a 4 x 4 hanging cloth written as the CLI writes it (6 frames)."""
+    hanging_scene["simulation"].update(duration=0.1, frame_rate=50)
+    sim = ic.Simulator(hanging_scene)
+    traj = sim.run()
+    out = tmp_path / "run"
+    out.mkdir()
+    _write_outputs(out, traj, sim.scene.data)
+    return out
+
+
+def test_export_obj_ply_glb_open_in_trimesh(run_dir, capsys):
+    with np.load(run_dir / "trajectory.npz") as z:
+        pos, faces = z["positions"], z["faces"]
+    assert main(["export", str(run_dir), "--format", "obj"]) == 0
+    objs = sorted((run_dir / "export").glob("frame_*.obj"))
+    assert [p.name for p in objs] == [f"frame_{k:04d}.obj" for k in range(len(pos))]
+    for k, p in enumerate(objs):
+        m = trimesh.load(p, process=False)
+        np.testing.assert_allclose(m.vertices, pos[k], atol=1e-7)
+        np.testing.assert_array_equal(m.faces, faces)
+    assert main(["export", str(run_dir), "--format", "ply", "--frames", "0", "-1", "--out",
+                 str(run_dir / "ply")]) == 0
+    plys = sorted((run_dir / "ply").glob("*.ply"))
+    assert [p.name for p in plys] == ["frame_0000.ply", f"frame_{len(pos) - 1:04d}.ply"]
+    np.testing.assert_allclose(trimesh.load(plys[1], process=False).vertices, pos[-1], atol=1e-6)
+    assert main(["export", str(run_dir), "--format", "glb"]) == 0
+    scene = trimesh.load(run_dir / "export" / "frames.glb")
+    assert len(scene.geometry) == len(pos)
+    g = scene.geometry["frame_0003"]
+    np.testing.assert_allclose(g.vertices, pos[3], atol=1e-6)     # glb stores float32
+    with np.load(run_dir / "trajectory.npz") as z:
+        assert g.metadata["time"] == pytest.approx(z["times"][3])
+    assert [p.name for p in (run_dir / "export").glob("*.glb")] == ["frames.glb"]   # glb: one file
+    assert "wrote 1 glb file to" in capsys.readouterr().out
+    assert not [p for p in (run_dir / "export").iterdir() if p.name.startswith(".")]
+
+
+def test_export_errors_are_one_line(run_dir, tmp_path, capsys):
+    assert main(["export", str(run_dir), "--format", "stl"]) == 2
+    assert "--format: must be one of obj, ply, glb, got 'stl'" in capsys.readouterr().err
+    assert main(["export", str(run_dir), "--frames", "6"]) == 2
+    assert "--frames[0]: frame index out of range (the run has 6 frames" in capsys.readouterr().err
+    assert main(["export", str(tmp_path / "nothing")]) == 2
+    assert "RUN_DIR: no trajectory.npz" in capsys.readouterr().err
+
+
+def test_obstacle_triangles_follow_issue_3_keys():
+    ext = (np.zeros(3), 2.0)
+    tri = obstacle_triangles({"shape": "sphere", "radius": 0.3, "center": [1.0, 2.0, 3.0]}, 0.0, ext)
+    np.testing.assert_allclose(np.linalg.norm(tri - [1.0, 2.0, 3.0], axis=2), 0.3, rtol=1e-9)
+    box = {"shape": "box", "size": [0.2, 0.4, 0.6], "center": [0.0, 0.0, 1.0], "velocity": [0.0, 0.0, -2.0]}
+    tri = obstacle_triangles(box, 0.25, ext).reshape(-1, 3)                  # moved down by 0.5 m
+    np.testing.assert_allclose(tri.min(0), [-0.1, -0.2, 0.2])
+    np.testing.assert_allclose(tri.max(0), [0.1, 0.2, 0.8])
+    n = np.array([0.0, 1.0, 1.0]) / np.sqrt(2)
+    tri = obstacle_triangles({"shape": "plane", "point": [0.0, 0.0, -1.0], "normal": [0.0, 1.0, 1.0]}, 0.0, ext)
+    np.testing.assert_allclose((tri.reshape(-1, 3) - [0.0, 0.0, -1.0]) @ n, 0.0, atol=1e-12)
+    cone = obstacle_triangles({"shape": "cone", "radius": 0.2, "height": 0.5, "center": [0.0, 0.0, 0.0],
+                               "axis": [1.0, 0.0, 0.0]}, 0.0, ext).reshape(-1, 3)
+    np.testing.assert_allclose([cone[:, 0].min(), cone[:, 0].max()], [0.0, 0.5], atol=1e-12)  # apex along +x
+    with pytest.warns(RenderWarning, match="shape 'torus' is not drawn"):
+        assert obstacle_triangles({"shape": "torus"}, 0.0, ext) is None
+    with pytest.warns(RenderWarning, match="'sphere' obstacle is not drawn"):
+        assert obstacle_triangles({"shape": "sphere", "center": [0, 0, 0]}, 0.0, ext) is None   # no radius
+
+
+def test_render_png_and_gif_open_in_pillow_and_show_obstacles(run_dir, tmp_path, capsys):
+    assert main(["render", str(run_dir), "--out", str(tmp_path / "plain"), "--movie", "none", "--dpi", "40"]) == 0
+    # a hand-made report with issue 3's obstacles (and one shape render does not know)
+    report = json.loads((run_dir / "report.json").read_text())
+    report["scene"]["obstacles"] = [
+        {"shape": "sphere", "radius": 0.25, "center": [0.0, 0.0, 0.2]},
+        {"shape": "box", "size": [0.3, 0.3, 0.3], "center": [0.4, 0.3, 0.3]},
+        {"shape": "plane", "point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]},
+        {"shape": "torus", "radius": 1.0},
+    ]
+    (run_dir / "report.json").write_text(json.dumps(report))
+    assert main(["render", str(run_dir), "--dpi", "40", "--fps", "10"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.count("implicit-cloth: warning: obstacles: shape 'torus' is not drawn") == 1
+    assert captured.err.count("warning:") == 1          # the others were drawn
+    png, gif = run_dir / "render" / "frames.png", run_dir / "render" / "movie.gif"
+    assert str(png) in captured.out and str(gif) in captured.out
+    with PIL_Image.open(png) as im:
+        assert im.format == "PNG" and im.size == (3 * 4 * 40, 4 * 40)     # first, middle, last frame
+        with_obstacles = np.asarray(im.convert("RGB"), float)
+    with PIL_Image.open(tmp_path / "plain" / "frames.png") as im:
+        plain = np.asarray(im.convert("RGB"), float)
+    # the obstacles' grey (R > B) appears only in the picture that has them; the cloth is blue (B > R)
+    grey = lambda a: np.sum((a[..., 0] > a[..., 2] + 10) & (a.sum(-1) < 700))   # noqa: E731
+    assert grey(with_obstacles) > 500 and grey(plain) == 0
+    with PIL_Image.open(gif) as im:
+        assert im.format == "GIF" and im.n_frames == 6
+        assert im.info["duration"] == 100
+    assert main(["render", str(run_dir), "--movie", "avi"]) == 2
+    assert "--movie: must be one of gif, mp4, none, got 'avi'" in capsys.readouterr().err
+
+
+def test_render_api_frames_and_movie_limit(run_dir, tmp_path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        files = render_run(run_dir, out=tmp_path / "r", frames=[-1], max_movie_frames=3, dpi=30)
+    with PIL_Image.open(files[0]) as im:
+        assert im.size == (4 * 30, 4 * 30)
+    with PIL_Image.open(files[1]) as im:
+        assert im.n_frames == 3
+
+
+def test_compare_plots_a_sweep(tmp_path, capsys):
+    from implicit_cloth.batch import load_sweep, run_sweep
+
+    (tmp_path / "base.toml").write_text(
+        (Path(__file__).resolve().parents[1] / "examples" / "hanging.toml").read_text())
+    (tmp_path / "sweep.toml").write_text(
+        'base = "base.toml"\n[set]\n"cloth.resolution" = [4, 4]\n"simulation.duration" = 0.1\n'
+        '[sweep]\n"simulation.dt" = [0.01, 0.02]\n"simulation.integrator" = ["backward_euler", "bdf2"]\n')
+    out = tmp_path / "out"
+    run_sweep(load_sweep(tmp_path / "sweep.toml"), out, workers=1)
+    assert main(["compare", str(out), "--by", "simulation.integrator"]) == 0
+    files = capsys.readouterr().out.split()
+    assert sorted(Path(f).name for f in files) == sorted(
+        f"{m}_vs_simulation_dt.png" for m in ("energy_drift_rel", "max_strain", "mean_iterations", "wall_s"))
+    for f in files:
+        with PIL_Image.open(f) as im:
+            assert im.format == "PNG"
+    assert main(["compare", str(out), "--x", "simulation.integrator"]) == 2
+    assert "--x: the values of simulation.integrator are not numbers" in capsys.readouterr().err
+    assert main(["compare", str(out), "--metrics", "speed"]) == 2
+    assert "--metrics[0]: must be one of" in capsys.readouterr().err
+    assert main(["compare", str(tmp_path)]) == 2
+    assert "DIR: no summary.json" in capsys.readouterr().err
+
+
+def test_core_import_stays_light():
+    import subprocess
+    import sys
+
+    code = ("import sys, implicit_cloth, implicit_cloth.cli; "
+            "print(sorted(m for m in ('dask', 'distributed', 'matplotlib', 'PIL') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+@pytest.mark.parametrize("motion", [
+    {"velocity": [1.0, 0.0, 0.5], "angular_velocity": [0.0, 0.0, 2.0], "center": [0.1, 0.2, 0.3]},
+    {"keyframes": [{"time": 0.0, "center": [0.0, 0.0, 0.0]},
+                   {"time": 1.0, "center": [1.0, 0.0, 0.0], "rotation": [0.0, 0.0, 1.0]}]},
+], ids=["velocity", "keyframes"])
+def test_render_places_obstacles_where_the_collider_has_them(motion):
+    """The drawn box's corners are the collision code's box corners at the same time (same motion code)."""
+    from implicit_cloth.collision.shapes import build
+    from implicit_cloth.render import obstacle_triangles
+    from implicit_cloth.scene import _obstacles
+
+    table = {"shape": "box", "size": [0.2, 0.4, 0.6], **motion}
+    shape, mo = build(_obstacles([table])[0])
+    for t in (0.0, 0.3, 0.7):
+        drawn = np.unique(obstacle_triangles(table, t, (np.zeros(3), 1.0)).reshape(-1, 3).round(12), axis=0)
+        corners = mo.to_world(shape.feature_points, t)
+        assert len(drawn) == 8
+        gap = np.linalg.norm(drawn[:, None, :] - corners[None, :, :], axis=2)
+        assert gap.min(axis=0).max() < 1e-9 and gap.min(axis=1).max() < 1e-9   # the same eight points
