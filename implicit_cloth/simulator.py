@@ -119,8 +119,9 @@ class Simulator:
         sim = scene.data["simulation"]
         self.integrator_name: str = sim["integrator"]
         self.dt: float = sim["dt"]
-        self.model = Model(scene)
-        self.integrator = make_integrator(self.integrator_name, self.model, scene.data["solver"])
+        with _blas_threads(blas_threads):   # set-up (multigrid hierarchy, coarse factor) on the same threads
+            self.model = Model(scene)
+            self.integrator = make_integrator(self.integrator_name, self.model, scene.data["solver"])
         x = self.model.rest_positions.copy()
         v = np.broadcast_to(np.asarray(scene.data["cloth"]["velocity"], dtype=float), x.shape).copy()
         self.model.apply_pins(x, v, 0.0)
@@ -481,7 +482,9 @@ _CONTROLLER: Any = None
 
 
 def _blas_threads(n: int | None):
-    """Context limiting BLAS threads to ``n`` while stepping (None: leave them as they are).
+    """Context limiting BLAS threads to ``n`` while setting up and stepping (None: leave them as they are).
+
+    Both NumPy's and SciPy's own OpenBLAS (loaded with ``scipy.linalg``) are limited.
 
     The solver's many short dot products ran 3-10x slower with OpenBLAS's
     default two threads than with one on a 2-core machine (and a 64x64 step
@@ -491,6 +494,7 @@ def _blas_threads(n: int | None):
     if n is None:
         return contextlib.nullcontext()
     if _CONTROLLER is None:
+        import scipy.linalg  # noqa: F401  (loads SciPy's own OpenBLAS first, so that the controller sees it)
         from threadpoolctl import ThreadpoolController
 
         _CONTROLLER = ThreadpoolController()
