@@ -53,3 +53,4 @@ def resolve(name: str | None = None) -> str:
     if name == "numba" and not numba_available():
         raise ValueError("accelerator: numba is not installed (pip install 'implicit_cloth[fast]'), got 'numba'")
     return name
+

@@ -293,9 +293,22 @@ class _FusedHierarchy:
         self.pptr = np.concatenate(pp) if pp else np.zeros(1, dtype=np.int64)
         self.pidx = np.concatenate(pi) if pi else np.zeros(0, dtype=np.int64)
         self.pval = np.concatenate(pv) if pv else np.zeros(0)
+        self.toff = np.zeros(max(L, 1), dtype=np.int64)
+        tp, ti, tv = [], [], []
+        for l, P in enumerate(prolongations):              # P^T as CSR: restriction as a gather
+            PT = sp.csr_array(sp.csr_array(P).T)
+            PT.sort_indices()
+            self.toff[l] = sum(len(x) for x in tp)
+            tp.append(PT.indptr.astype(np.int64))
+            ti.append(PT.indices.astype(np.int64))
+            tv.append(PT.data.astype(float))
+        self.tptr = np.concatenate(tp) if tp else np.zeros(1, dtype=np.int64)
+        self.tidx = np.concatenate(ti) if ti else np.zeros(0, dtype=np.int64)
+        self.tval = np.concatenate(tv) if tv else np.zeros(0)
         self.dinv = np.zeros((int(self.voff[-1]), 3, 3))
         self.wb = np.zeros(3 * int(self.voff[-1]))
         self.wx = np.zeros(3 * int(self.voff[-1]))
+        self.wr = np.zeros(3 * int(self.voff[-1]))
         self.filt: Filter | None = None
         self.version = -1
         self._touch_key = None
@@ -371,7 +384,8 @@ class _FusedHierarchy:
     def _hier(self):
         C, upper = self._coarse()
         return (self.lbptr, self.lbcol, self.lvals, self.rowoff, self.blkoff, self.dinv, self.voff,
-                self.pptr, self.pidx, self.pval, self.poff, self.pnnz, C, upper, self.mg.omega)
+                self.pptr, self.pidx, self.pval, self.poff, self.pnnz, self.tptr, self.tidx, self.tval, self.toff,
+                C, upper, self.mg.omega)
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         from . import _fused
@@ -379,7 +393,7 @@ class _FusedHierarchy:
         r = np.ascontiguousarray(r, dtype=float)
         out = np.empty_like(r)
         _fused.vcycle(r, out, self.mg.fine.bptr, self.bcol0, self.vals0, self.cidx, self.Sc, *self._hier(),
-                      self.wb, self.wx)
+                      self.wb, self.wx, self.wr)
         return out
 
     def pcg(self, A, b, z, filt, tol=1e-3, max_iterations=1000, guess=None, mass=None, rule="estimate",
