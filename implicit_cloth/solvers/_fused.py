@@ -313,11 +313,13 @@ def vcycle(b, out, bptr0, bcol0, vals0, cidx, Sc,
 
 
 @njit(cache=True)
-def pcg(bptr0, bcol0, vals0, cidx, Sc, clist,
+def pcg(bptr0, bcol0, vals0, avals, cidx, Sc, clist,
         lbptr, lbcol, lvals, rowoff, blkoff, dinv, voff, pptr, pidx, pval, poff, pnnz,
         tptr, tidx, tval, toff, C, upper, omega,
         b, z, guess, use_guess, mass, use_mass, tol, max_iterations, bound_only, min_delay, delay_fraction):
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
+
+    ``avals`` are the fine matrix's blocks (float64) used by CG; ``vals0`` its V-cycle copy.
 
     Returns ``(dv, iterations, residual, converged, error)``.
     """
@@ -333,14 +335,14 @@ def pcg(bptr0, bcol0, vals0, cidx, Sc, clist,
         s0, s1, s2 = _filt3(Sc, c, z0, z1, z2)
         dv[3 * i], dv[3 * i + 1], dv[3 * i + 2] = z0 - s0, z1 - s1, z2 - s2
     r = np.empty(N)
-    _residual(bptr0, bcol0, vals0, cidx, Sc, False, b, dv, r)
+    _residual(bptr0, bcol0, avals, cidx, Sc, False, b, dv, r)
     filter_vec(clist, Sc, r)
     norm0 = np.sqrt(_dot(r, r))
     if use_guess:
         g = guess.copy()
         filter_vec(clist, Sc, g)
         dv += g
-        _residual(bptr0, bcol0, vals0, cidx, Sc, False, b, dv, r)
+        _residual(bptr0, bcol0, avals, cidx, Sc, False, b, dv, r)
         filter_vec(clist, Sc, r)
     if norm0 == 0.0:
         return dv, 0, 0.0, True, 0.0
@@ -359,7 +361,7 @@ def pcg(bptr0, bcol0, vals0, cidx, Sc, clist,
     it = 0
     while not converged and it < max_iterations:
         # p is filtered, so S A S p + (I - S) p = S A p: the filtered product
-        _matvec(bptr0, bcol0, vals0, cidx, Sc, True, p, q)
+        _matvec(bptr0, bcol0, avals, cidx, Sc, True, p, q)
         pq, pp = _dot2(p, q)
         if pq <= 0.0:
             break
@@ -393,7 +395,7 @@ def pcg(bptr0, bcol0, vals0, cidx, Sc, clist,
             beta = delta_new / delta
             _p_update(p, s, beta)
         delta = delta_new
-    _residual(bptr0, bcol0, vals0, cidx, Sc, False, b, dv, q)
+    _residual(bptr0, bcol0, avals, cidx, Sc, False, b, dv, q)
     filter_vec(clist, Sc, q)
     res = np.sqrt(_dot(q, q)) / norm0
     return dv, it, res, converged, error
