@@ -255,15 +255,17 @@ class _FusedHierarchy:
 
     Coarse levels' block values live in one array (each coarse
     :class:`SystemMatrix`'s ``blocks`` is a view into it), refreshed by the same
-    Galerkin maps as the numpy path. The fine level's values are copied at
-    setup (one pass, the snapshot the numpy path also takes) and the filter is
-    applied on the fly; the Galerkin product of the filtered fine matrix is the
+    Galerkin maps as the numpy path. The V-cycle's copy of the fine level's
+    values is taken at setup (one pass, the snapshot the numpy path also
+    takes; float32 from :data:`FLOAT32_MIN_VERTICES` on), while the compiled
+    CG multiplies by the system's own float64 blocks. The filter is applied on
+    the fly; the Galerkin product of the filtered fine matrix is the
     unfiltered one plus a correction from the few blocks that touch a
     constrained vertex.
     """
 
     def __init__(self, mg: Multigrid, prolongations: list) -> None:
-        from . import _fused  # noqa: F401  (compiles or loads the cached kernels now, not in the first step)
+        from . import _fused  # noqa: F401  (imports numba now; the kernels compile, or load from cache, on first use)
 
         self.mg = mg
         systems = mg._systems()
