@@ -21,6 +21,9 @@ call per vector operation:
 * CG's vector updates, dot products and the error estimate of the stopping
   rule are fused loops.
 
+Floating-point contraction (fused multiply-add) is allowed (``fastmath={"contract"}``:
+no reassociation, NaN and infinity kept): the V-cycle got 12-18 % faster at 128².
+
 Every function is compiled with ``cache=True`` (the compiled code is stored
 next to this file in ``__pycache__``), so the compilation (25-50 s on the
 2-core test machine) is paid once per installation, not per run.
@@ -42,7 +45,7 @@ def _filt3(Sc, c, x0, x1, x2):
             s[2, 0] * x0 + s[2, 1] * x1 + s[2, 2] * x2)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def filter_vec(cidx_list, Sc, x):
     """``x <- S x`` for the constrained vertices ``cidx_list`` (their filters ``Sc`` in the same order)."""
     for c in range(len(cidx_list)):
@@ -51,7 +54,7 @@ def filter_vec(cidx_list, Sc, x):
         x[3 * i], x[3 * i + 1], x[3 * i + 2] = y0, y1, y2
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _matvec(bptr, bcol, vals, cidx, Sc, filtered, x, y):
     """``y = A x``; with ``filtered``: ``y = S A S x + (I - S) x`` (the filtered matrix of the module docstring)."""
     n = len(bptr) - 1
@@ -83,7 +86,7 @@ def _matvec(bptr, bcol, vals, cidx, Sc, filtered, x, y):
         y[3 * i + 2] = a2
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _presmooth(dinv, omega, b, x):
     """Pre-smoothing from zero: ``x = omega D^-1 b``."""
     n = len(dinv)
@@ -95,7 +98,7 @@ def _presmooth(dinv, omega, b, x):
         x[3 * i + 2] = omega * (d[2, 0] * b0 + d[2, 1] * b1 + d[2, 2] * b2)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _residual(bptr, bcol, vals, cidx, Sc, filtered, b, x, r):
     """``r = b - A x`` (``A`` filtered as in :func:`_matvec` when ``filtered``)."""
     n = len(bptr) - 1
@@ -127,7 +130,7 @@ def _residual(bptr, bcol, vals, cidx, Sc, filtered, b, x, r):
         r[3 * i + 2] = b[3 * i + 2] - a2
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _transfer(ptr, idx, val, x, y, add):
     """``y (+)= M x`` for a node-level CSR ``M`` (``P`` to prolong, ``P^T`` to restrict) acting on 3-vectors."""
     n = len(ptr) - 1
@@ -151,7 +154,7 @@ def _transfer(ptr, idx, val, x, y, add):
             y[3 * i + 2] = y2
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _postsmooth(bptr, bcol, vals, cidx, Sc, filtered, dinv, omega, b, x, y):
     """Post-smoothing: ``y = x + omega D^-1 (b - A x)`` (``y`` may alias ``b``, not ``x``)."""
     n = len(bptr) - 1
@@ -187,7 +190,7 @@ def _postsmooth(bptr, bcol, vals, cidx, Sc, filtered, dinv, omega, b, x, y):
         y[3 * i + 2] = xi2 + omega * (d[2, 0] * r0 + d[2, 1] * r1 + d[2, 2] * r2)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _dot2(p, q):
     """``(p.q, p.p)``."""
     pq = 0.0
@@ -198,7 +201,7 @@ def _dot2(p, q):
     return pq, pp
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _dot(a, b):
     s = 0.0
     for k in range(len(a)):
@@ -206,7 +209,7 @@ def _dot(a, b):
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _cg_update(dv, r, p, q, alpha, mass, use_mass):
     """``dv += alpha p``, ``r -= alpha q``; returns ``(dv.dv, r.M^-1 r, dv.M dv)`` (the last two with ``use_mass``)."""
     dd = 0.0
@@ -224,13 +227,13 @@ def _cg_update(dv, r, p, q, alpha, mass, use_mass):
     return dd, rmr, dmd
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _p_update(p, s, beta):
     for k in range(len(p)):
         p[k] = beta * p[k] + s[k]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _coarse_solve(C, upper, b, x):
     """``x = A_c^-1 b``: with ``upper``, ``C = U`` (``A_c = U^T U``, upper triangle read only); else ``C = A_c^-1``."""
     m = len(b)
@@ -253,7 +256,7 @@ def _coarse_solve(C, upper, b, x):
             x[i] = s
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def _level(l, bptr0, bcol0, vals0, lbptr, lbcol, lvals, rowoff, blkoff, voff):
     """Block rows of level l: the fine arrays for l = 0, views into the packed coarse ones otherwise."""
     if l == 0:
@@ -262,7 +265,7 @@ def _level(l, bptr0, bcol0, vals0, lbptr, lbcol, lvals, rowoff, blkoff, voff):
     return (lbptr[rowoff[l]:rowoff[l] + n + 1], lbcol[blkoff[l]:blkoff[l + 1]], lvals[blkoff[l]:blkoff[l + 1]])
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def vcycle(b, out, bptr0, bcol0, vals0, cidx, Sc,
            lbptr, lbcol, lvals, rowoff, blkoff, dinv, voff, pptr, pidx, pval, poff, pnnz,
            tptr, tidx, tval, toff, C, upper, omega, wb, wx, wr):
@@ -312,7 +315,7 @@ def vcycle(b, out, bptr0, bcol0, vals0, cidx, Sc,
         _postsmooth(bp, bc, bv, cidx, Sc, l == 0, d, omega, bl, x, y)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})
 def pcg(bptr0, bcol0, vals0, avals, cidx, Sc, clist,
         lbptr, lbcol, lvals, rowoff, blkoff, dinv, voff, pptr, pidx, pval, poff, pnnz,
         tptr, tidx, tval, toff, C, upper, omega,
