@@ -22,6 +22,7 @@ Usage::
     python benchmarks/scaling.py                         # 32..256, both k, both preconditioners
     python benchmarks/scaling.py --sizes 32 64 --out /tmp/res
     python benchmarks/scaling.py --quick                 # CI smoke test (seconds)
+    python benchmarks/scaling.py --accelerators numba numpy   # compiled path against the numpy reference
 
 Writes ``OUT/scaling.json``, ``OUT/scaling.md`` and ``OUT/scaling.png``. Never asserts a time.
 """
@@ -37,6 +38,8 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from _common import ROOT, hanging_stiff, ic, machine, spmv_seconds, write_outputs
+
+from implicit_cloth.solvers.accel import resolve as resolve_accelerator, set_default_accelerator
 
 H = 1 / 60
 
@@ -57,10 +60,16 @@ def _direct_dv(sim: ic.Simulator) -> np.ndarray:
 
 
 def time_steps(n: int, k: float, preconditioner: str, state: ic.simulator.State, steps: int,
-               error_samples: int, ref0: np.ndarray) -> dict:
+               error_samples: int, ref0: np.ndarray, accelerator: str | None = None) -> dict:
     """Time ``steps`` steps from ``state``; true error on the first step (against ``ref0``) and
-    ``error_samples - 1`` more evenly spread ones (direct solves of their own)."""
-    sim = ic.Simulator(hanging_stiff(n, k, preconditioner), dt=H)
+    ``error_samples - 1`` more evenly spread ones (direct solves of their own). ``accelerator``:
+    the multigrid's implementation (numba or numpy; ``None``: the default)."""
+    set_default_accelerator(accelerator)
+    try:
+        sim = ic.Simulator(hanging_stiff(n, k, preconditioner), dt=H)
+    finally:
+        set_default_accelerator(None)
+    acc = getattr(sim.integrator.precond, "accelerator", "numpy")
     sim.positions, sim.velocities = state.x, state.v
     sim.state.t = state.t
     extra = np.linspace(0, steps - 1, error_samples).round().astype(int)[1:] if error_samples > 1 else []
@@ -82,7 +91,7 @@ def time_steps(n: int, k: float, preconditioner: str, state: ic.simulator.State,
     med = lambda i: statistics.median(r[i] for r in rows)  # noqa: E731
     ms = 1e3 * med(0)
     return {
-        "resolution": n, "vertices": sim.model.n, "k": k, "preconditioner": preconditioner,
+        "resolution": n, "vertices": sim.model.n, "k": k, "preconditioner": preconditioner, "accelerator": acc,
         "tolerance": sim.integrator.tolerance,
         "ms_step": ms, "ms_assembly": 1e3 * med(1), "ms_setup": 1e3 * med(2), "ms_solve": 1e3 * med(3),
         "ms_collision": 1e3 * med(6),   # StepInfo.t_collision when the engine reports it; no obstacles here
@@ -131,18 +140,32 @@ def fit_exponent(rows: list[dict]) -> float | None:
     return float(np.polyfit(np.log(N), np.log(t), 1)[0])
 
 
+def _series(res: dict) -> list[tuple[str, str, str]]:
+    """(preconditioner, accelerator, exponent key) of every timed series; block Jacobi is numpy only.
+
+    The first accelerator's multigrid series keeps the plain key ``multigrid``; others get ``multigrid/ACC``.
+    """
+    out = []
+    for pc in res["preconditioners"]:
+        accs = res.get("accelerators", ["numpy"]) if pc == "multigrid" else ["numpy"]
+        for m, acc in enumerate(accs):
+            out.append((pc, acc, pc if m == 0 else f"{pc}/{acc}"))
+    return out
+
+
 def markdown(res: dict) -> str:
     out = [f"Hanging stiff cloth, backward Euler dt = 1/60 s; steps {res['warmup']}-{res['warmup'] + res['steps']} "
            f"timed (median); {res['machine']['cpus']} cores, one BLAS thread. Default solver settings: "
            f"preconditioner {res['default_solver']['preconditioner']}, tolerance "
-           f"{res['default_solver']['tolerance']:g}.", ""]
+           f"{res['default_solver']['tolerance']:g}; multigrid implementation(s): "
+           f"{', '.join(res.get('accelerators', ['numpy']))} (numba: compiled kernels, one thread).", ""]
     for k in res["ks"]:
-        for pc in res["preconditioners"]:
-            rows = [r for r in res["rows"] if r["k"] == k and r["preconditioner"] == pc]
+        for pc, acc, key in _series(res):
+            rows = [r for r in res["rows"] if r["k"] == k and r["preconditioner"] == pc and r["accelerator"] == acc]
             if not rows:
                 continue
-            exp = res["exponents"].get(f"{pc}@{k:g}")
-            out += [f"### k = {k:g} N/m, {pc}" + (f" (ms/step ~ N^{exp:.2f})" if exp is not None else ""), "",
+            exp = res["exponents"].get(f"{key}@{k:g}")
+            out += [f"### k = {k:g} N/m, {pc} ({acc})" + (f" (ms/step ~ N^{exp:.2f})" if exp is not None else ""), "",
                     "| grid | vertices | ms/step | assembly | setup | solve | collision | rest | CG its (med/max) "
                     "| true error of dv (max) | step / SpMV |",
                     "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -153,6 +176,21 @@ def markdown(res: dict) -> str:
                            f"{r['ms_rest']:.1f} | {r['iterations_median']:.0f}/{r['iterations_max']} | {err} | "
                            f"{r['step_in_spmvs']:.0f} |")
             out.append("")
+    accs = res.get("accelerators", [])
+    if "numba" in accs and "numpy" in accs:
+        out += ["### Compiled (numba) against reference (numpy) multigrid path, same run", "",
+                "| k | grid | ms/step numpy | ms/step numba | step speed-up | CG its numpy / numba |",
+                "|---|---|---|---|---|---|"]
+        for k in res["ks"]:
+            for n in res["sizes"]:
+                pair = {r["accelerator"]: r for r in res["rows"]
+                        if r["k"] == k and r["resolution"] == n and r["preconditioner"] == "multigrid"}
+                if len(pair) == 2:
+                    a, b = pair["numpy"], pair["numba"]
+                    out.append(f"| {k:g} | {n}² | {a['ms_step']:.1f} | {b['ms_step']:.1f} | "
+                               f"{a['ms_step'] / b['ms_step']:.2f}x | {a['iterations_median']:.0f} / "
+                               f"{b['iterations_median']:.0f} |")
+        out.append("")
     if res["trajectory"]:
         out += ["### Default settings against tolerance 1e-8 (trajectory)", "",
                 "Control: the tolerance-1e-8 run started 1e-9 m away (random); when it drifts as far, "
@@ -174,15 +212,17 @@ def plot(res: dict, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(7, 5))
     for k in res["ks"]:
-        for pc, style in zip(res["preconditioners"], ("o-", "s--")):
-            rows = [r for r in res["rows"] if r["k"] == k and r["preconditioner"] == pc]
+        for (pc, acc, key), style in zip(_series(res), ("o-", "s--", "^-.", "v:")):
+            rows = [r for r in res["rows"] if r["k"] == k and r["preconditioner"] == pc and r["accelerator"] == acc]
             if not rows:
                 continue
-            exp = res["exponents"].get(f"{pc}@{k:g}")
+            exp = res["exponents"].get(f"{key}@{k:g}")
             N = [r["vertices"] for r in rows]
             ax.loglog(N, [r["ms_step"] for r in rows], style,
-                      label=f"{pc}, k={k:g} N/m" + (f" (N^{exp:.2f})" if exp is not None else ""))
-    rows = [r for r in res["rows"] if r["k"] == res["ks"][0] and r["preconditioner"] == res["preconditioners"][0]]
+                      label=f"{pc} ({acc}), k={k:g} N/m" + (f" (N^{exp:.2f})" if exp is not None else ""))
+    pc0, acc0, _ = _series(res)[0]
+    rows = [r for r in res["rows"] if r["k"] == res["ks"][0] and r["preconditioner"] == pc0
+            and r["accelerator"] == acc0]
     ax.loglog([r["vertices"] for r in rows], [r["ms_spmv"] for r in rows], "k:", label="one SpMV (floor)")
     ax.set_xlabel("vertices N")
     ax.set_ylabel("ms per backward-Euler step (median)")
@@ -202,6 +242,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ks", type=float, nargs="+", default=[1e4, 1e3])
     p.add_argument("--preconditioners", nargs="+", default=["multigrid", "block_jacobi"],
                    choices=["multigrid", "block_jacobi"])
+    p.add_argument("--accelerators", nargs="+", default=["auto"], choices=["auto", "numba", "numpy"],
+                   help="multigrid implementations to time (auto: numba if installed); the first is the default "
+                        "series, e.g. --accelerators numba numpy for the speed-up of the compiled path")
     p.add_argument("--warmup", type=int, default=20)
     p.add_argument("--steps", type=int, default=40)
     p.add_argument("--slow-steps", type=int, default=5,
@@ -220,6 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         a.sizes, a.warmup, a.steps, a.slow_steps, a.error_samples = [8, 16], 2, 3, 3, 1
         a.trajectory_sizes = [8]
     default_solver = ic.Scene.from_dict({"cloth": {"mass": 1.0}}).data["solver"]
+    accelerators = list(dict.fromkeys(resolve_accelerator(x) for x in a.accelerators))
     rows = []
     for k in a.ks:
         for n in a.sizes:
@@ -234,18 +278,21 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"k={k:g} {n:4d}² {pc:12s} skipped (--slow-max {a.slow_max})", flush=True)
                     continue
                 steps = a.slow_steps if (pc == "block_jacobi" and n >= 128) else a.steps
-                r = time_steps(n, k, pc, state, steps, samples, ref0)
-                rows.append(r)
-                err = f"{r['true_error_max']:.1e}" if r["true_error_max"] is not None else "-"
-                print(f"k={k:g} {n:4d}² {pc:12s} {r['ms_step']:9.1f} ms/step (asm {r['ms_assembly']:.1f}, setup "
-                      f"{r['ms_setup']:.1f}, solve {r['ms_solve']:.1f})  its {r['iterations_median']:.0f}  "
-                      f"true err {err}  = {r['step_in_spmvs']:.0f} SpMVs", flush=True)
+                for acc in (accelerators if pc == "multigrid" else ["numpy"]):
+                    r = time_steps(n, k, pc, state, steps, samples, ref0, acc)
+                    rows.append(r)
+                    err = f"{r['true_error_max']:.1e}" if r["true_error_max"] is not None else "-"
+                    print(f"k={k:g} {n:4d}² {pc:12s} {acc:5s} {r['ms_step']:9.1f} ms/step (asm "
+                          f"{r['ms_assembly']:.1f}, setup {r['ms_setup']:.1f}, solve {r['ms_solve']:.1f})  its "
+                          f"{r['iterations_median']:.0f}  true err {err}  = {r['step_in_spmvs']:.0f} SpMVs", flush=True)
+    res = {"preconditioners": a.preconditioners, "accelerators": accelerators}
     exponents = {}
     for k in a.ks:
-        for pc in a.preconditioners:
-            e = fit_exponent([r for r in rows if r["k"] == k and r["preconditioner"] == pc])
+        for pc, acc, key in _series(res):
+            e = fit_exponent([r for r in rows if r["k"] == k and r["preconditioner"] == pc
+                              and r["accelerator"] == acc])
             if e is not None:
-                exponents[f"{pc}@{k:g}"] = e
+                exponents[f"{key}@{k:g}"] = e
     traj = []
     for k in a.ks:
         for n in a.trajectory_sizes:
@@ -254,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"trajectory k={k:g} {n}²: deviation {t['relative']:.2e} of the displacement "
                   f"(1e-9 m start perturbation: {t['perturbed_relative']:.2e})", flush=True)
     res = {"benchmark": "scaling", "quick": a.quick, "sizes": a.sizes, "ks": a.ks,
-           "preconditioners": a.preconditioners, "warmup": a.warmup, "steps": a.steps,
+           "preconditioners": a.preconditioners, "accelerators": accelerators, "warmup": a.warmup, "steps": a.steps,
            "slow_steps": a.slow_steps, "default_solver": default_solver, "machine": machine(),
            "rows": rows, "exponents": exponents, "trajectory": traj}
     md = markdown(res)

@@ -51,6 +51,10 @@ class SystemMatrix:
         self.diag_index = self.block_index(diag, diag)
         #: (n_blocks, 3, 3) block values, refilled every step
         self.blocks = np.zeros((self.n_blocks, 3, 3))
+        #: block-row pointers: row i's blocks are ``bptr[i]:bptr[i+1]`` (columns ``block_cols``, sorted)
+        self.bptr = bptr.astype(np.int64)
+        #: bumped by every :meth:`finalize`: tells whether :attr:`csr` still holds the values a consumer saw
+        self.version = 0
 
         # CSR structure: scalar row 3*i + a holds, for each block (i, c) in block
         # row i (in column order, position m), the entries 3*c + 0..2.
@@ -101,6 +105,7 @@ class SystemMatrix:
     def finalize(self) -> sp.csr_array:
         """Copy the block values into the CSR matrix and return it (same object every step)."""
         np.take(self.blocks.reshape(-1), self._perm, out=self.csr.data)
+        self.version += 1
         return self.csr
 
     def diagonal_blocks(self) -> np.ndarray:

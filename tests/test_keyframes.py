@@ -158,7 +158,10 @@ def test_two_keys_reproduce_the_velocity_form(case, tmp_path):
     assert a.report["collision"]["contacts"] > 0
     assert np.abs(a.positions[-1] - a.positions[0]).max() > 0.05        # the cloth did move
     roundoff = np.abs(c.positions - a.positions).max()
-    assert np.abs(b.positions - a.positions).max() <= max(10 * roundoff, 1e-12)
+    # floor: in the box case a contact decided at a borderline (a vertex at exactly the thickness) moves the
+    # cloth by 2.3e-8 m whichever way the last bit falls (the nudge reproduces it on the numpy solver path, not
+    # on the numba one); a wrong reading of the keys would move it by millimetres
+    assert np.abs(b.positions - a.positions).max() <= max(10 * roundoff, 1e-6)
 
 
 @pytest.mark.parametrize("dt", [1 / 60, 1 / 30], ids=["dt60", "dt30"])

@@ -295,6 +295,7 @@ def test_invalid_scene_raises_scene_error(case):
 
 
 # --------------------------------------------------------------------------- extreme values outside the ranges above
+@pytest.mark.filterwarnings("ignore::implicit_cloth.SolverWarning")   # unconverged solves are expected here
 @pytest.mark.parametrize("k", [1e16, 1e20, 1e40])
 def test_extreme_stiffness_to_mass_ratio(k):
     """k dt^2 / m_i = 1.6e14 .. 1.6e38: the multigrid's coarse Cholesky falls back to a shifted factor (no

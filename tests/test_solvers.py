@@ -7,8 +7,12 @@ import trimesh
 
 import implicit_cloth as ic
 from implicit_cloth import cloth
-from implicit_cloth.solvers import Filter, filtered_pcg, make_preconditioner
+from implicit_cloth.solvers import Filter, filtered_pcg, make_preconditioner, numba_available
 from implicit_cloth.solvers.multigrid import Multigrid, grid_prolongations
+
+#: every multigrid test runs on both paths: numpy (reference, fallback) and the numba accelerator
+NUMBA = pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="numba not installed"))
+ACCELERATORS = ["numpy", NUMBA]
 
 H = 1 / 60
 
@@ -57,9 +61,11 @@ def _direct(A, b, z, filt):
 
 
 @pytest.mark.parametrize("kind", ["grid", "mesh"])
-@pytest.mark.parametrize("preconditioner", ["multigrid", "block_jacobi"])
+@pytest.mark.parametrize("preconditioner, accelerator",
+                         [("multigrid", "numpy"), pytest.param("multigrid", "numba", marks=NUMBA.marks),
+                          ("block_jacobi", "numpy")])
 @pytest.mark.parametrize("tol", [1e-2, 1e-4])
-def test_solver_matches_direct_solve_within_tolerance(tmp_path, kind, preconditioner, tol):
+def test_solver_matches_direct_solve_within_tolerance(tmp_path, kind, preconditioner, accelerator, tol):
     scene = _scene(mesh=_mesh_file(tmp_path) if kind == "mesh" else None)
     sim = ic.Simulator(scene, dt=H, solver={"preconditioner": preconditioner})
     m, A, b = _system(sim)
@@ -69,8 +75,11 @@ def test_solver_matches_direct_solve_within_tolerance(tmp_path, kind, preconditi
     partial = np.array([m.n // 2, m.n // 3])
     PS = np.stack([np.diag([1.0, 1.0, 0.0]), np.diag([1.0, 0.0, 0.0])])
     filt = Filter(m.n, m.pinned, partial, PS)
-    pc = make_preconditioner(preconditioner, m)
+    pc = make_preconditioner(preconditioner, m, accelerator)
     pc.setup(m.system.diagonal_blocks(), filt)
+    if accelerator == "numba":   # the system's own matrix, unchanged since setup: the whole PCG runs compiled
+        A = m.system.csr
+        assert pc.fused_pcg(A, b, z, filt) is not None and pc.fused_pcg(A.copy(), b, z, filt) is None
     dv, res = filtered_pcg(A, b, z, filt, pc, tol=tol, max_iterations=5000,
                            mass=np.repeat(m.masses, 3), rule=pc.stopping_rule)
     ref = _direct(A, b, z, filt)
@@ -85,7 +94,7 @@ def test_solver_matches_direct_solve_within_tolerance(tmp_path, kind, preconditi
 def test_multigrid_levels_and_galerkin_products():
     sim = ic.Simulator(_scene(res=(33, 20)), dt=H)
     m, A, _ = _system(sim, steps=2)
-    mg = make_preconditioner("multigrid", m)
+    mg = make_preconditioner("multigrid", m, "numpy")
     assert isinstance(mg, Multigrid) and mg.n_levels >= 3
     mg.setup(None, Filter(m.n, np.zeros(0, dtype=int)))
     for lvl, (Af, Ac) in zip(mg.levels, zip(mg._A[:-1], mg._A[1:])):
@@ -103,15 +112,16 @@ def test_multigrid_levels_and_galerkin_products():
     assert coarse.shape == (len(xc) * len(yc),)
 
 
-def test_stale_preconditioner_still_converges():
+@pytest.mark.parametrize("accelerator", ACCELERATORS)
+def test_stale_preconditioner_still_converges(accelerator):
     """A preconditioner set up one step earlier is a worse one (hence the per-step refresh), never a wrong answer."""
     sim = ic.Simulator(_scene(), dt=H)
     m, A_old, _ = _system(sim, steps=5)
     filt = Filter(m.n, m.pinned)
-    stale = make_preconditioner("multigrid", m)
+    stale = make_preconditioner("multigrid", m, accelerator)
     stale.setup(None, filt)                        # from the step-5 matrix
     m, A, b = _system(sim, steps=1)                # the shared pattern now holds the step-6 values
-    fresh = make_preconditioner("multigrid", m)
+    fresh = make_preconditioner("multigrid", m, accelerator)
     fresh.setup(None, filt)
     assert not np.allclose(A.data, A_old.data)
     ref = _direct(A, b, np.zeros_like(b), filt)
@@ -186,3 +196,81 @@ def test_multigrid_preconditioner_stays_spd_at_extreme_stiffness(k):
     Pf = P[np.ix_(free, free)]
     assert np.allclose(Pf, Pf.T, rtol=1e-8, atol=1e-12 * np.abs(Pf).max())
     assert np.linalg.eigvalsh(0.5 * (Pf + Pf.T)).min() > 0
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_numba_path_is_the_numpy_iteration():
+    """The compiled PCG and V-cycle do the reference's arithmetic: same iterations, same dv to round-off,
+    the same coarse matrices; on a tiny cloth (one level, solved directly) too."""
+    for res in ((33, 20), (8, 8)):
+        sim = ic.Simulator(_scene(res=res), dt=H)
+        m, A, b = _system(sim, steps=3)
+        z = np.random.default_rng(1).standard_normal(b.shape) * 0.01
+        filt = Filter(m.n, m.pinned, np.array([m.n // 2]), np.diag([1.0, 0.0, 1.0])[None])
+        out = {}
+        for acc in ("numpy", "numba"):
+            mg = make_preconditioner("multigrid", m, acc)
+            mg.setup(None, filt)
+            r = filt.apply(np.random.default_rng(2).standard_normal(b.shape))
+            out[acc] = (mg, mg.apply(r), *filtered_pcg(m.system.csr, b, z, filt, mg, tol=1e-6,
+                                                        mass=np.repeat(m.masses, 3)))
+        (mg0, v0, dv0, r0), (mg1, v1, dv1, r1) = out["numpy"], out["numba"]
+        assert mg1.accelerator == "numba" and mg0.accelerator == "numpy"
+        assert np.allclose(v1, v0, rtol=1e-10, atol=1e-12 * np.abs(v0).max())
+        assert r1.iterations == r0.iterations and r1.converged
+        assert np.allclose(dv1, dv0, rtol=1e-9, atol=1e-12 * np.abs(dv0).max())
+        for l0, l1 in zip(mg0.levels, mg1.levels):
+            assert np.allclose(l1.system.blocks, l0.system.blocks, rtol=1e-12, atol=1e-12 * np.abs(l0.system.blocks).max())
+    with pytest.raises(ValueError, match="accelerator: unknown accelerator.*'fortran'"):
+        make_preconditioner("multigrid", m, "fortran")
+
+
+def test_accelerator_falls_back_to_numpy_without_numba(monkeypatch):
+    from implicit_cloth.solvers import accel
+
+    monkeypatch.setattr(accel, "numba_available", lambda: False)
+    assert accel.resolve("auto") == "numpy" and accel.resolve("numpy") == "numpy"
+    with pytest.raises(ValueError, match="numba is not installed"):
+        accel.resolve("numba")
+    monkeypatch.setenv("IMPLICIT_CLOTH_ACCELERATOR", "gpu")
+    with pytest.raises(ValueError, match="IMPLICIT_CLOTH_ACCELERATOR: unknown accelerator.*'gpu'"):
+        accel.resolve()
+    monkeypatch.setenv("IMPLICIT_CLOTH_ACCELERATOR", "numpy")
+    sim = ic.Simulator(_scene(res=(12, 12)), dt=H)
+    assert sim.integrator.precond.accelerator == "numpy"
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_backward_euler_steps_agree_between_paths(monkeypatch):
+    """A few whole steps (assembly, refresh, solve) on each path land on the same state."""
+    runs = {}
+    for acc in ("numpy", "numba"):
+        monkeypatch.setenv("IMPLICIT_CLOTH_ACCELERATOR", acc)
+        sim = ic.Simulator(_scene(res=(20, 20)), dt=H, solver={"tolerance": 1e-8})
+        assert sim.integrator.precond.accelerator == acc
+        sim.step(5)
+        runs[acc] = (sim.positions.copy(), sim.last_step.iterations)
+    (x0, i0), (x1, i1) = runs["numpy"], runs["numba"]
+    assert i0 == i1
+    assert np.abs(x1 - x0).max() <= 1e-9
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+@pytest.mark.parametrize("tol", [1e-3, 1e-6])
+def test_numba_float32_vcycle_matches_direct_solve(monkeypatch, tol):
+    """Large cloths run the compiled V-cycle on float32 matrices: still dv within the tolerance, pins exact."""
+    from implicit_cloth.solvers import multigrid
+
+    monkeypatch.setattr(multigrid, "FLOAT32_MIN_VERTICES", 0)
+    sim = ic.Simulator(_scene(), dt=H)
+    m, A, b = _system(sim)
+    z = np.random.default_rng(3).standard_normal(b.shape) * 0.01
+    filt = Filter(m.n, m.pinned, np.array([m.n // 2]), np.diag([1.0, 1.0, 0.0])[None])
+    mg = make_preconditioner("multigrid", m, "numba")
+    mg.setup(None, filt)
+    assert mg._fused.vals0.dtype == np.float32
+    dv, res = filtered_pcg(m.system.csr, b, z, filt, mg, tol=tol, mass=np.repeat(m.masses, 3))
+    ref = _direct(A, b, z, filt)
+    assert res.converged and np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= tol
+    d3, z3 = dv.reshape(-1, 3), z.reshape(-1, 3)
+    assert np.array_equal(d3[m.pinned], z3[m.pinned]) and d3[m.n // 2, 2] == z3[m.n // 2, 2]

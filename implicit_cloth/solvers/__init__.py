@@ -4,22 +4,26 @@ from __future__ import annotations
 
 from typing import Any
 
+from .accel import numba_available, set_default_accelerator
 from .pcg import BlockJacobi, Filter, SolveResult, filtered_pcg
 
-__all__ = ["BlockJacobi", "Filter", "SolveResult", "filtered_pcg", "make_preconditioner"]
+__all__ = ["BlockJacobi", "Filter", "SolveResult", "filtered_pcg", "make_preconditioner", "numba_available",
+           "set_default_accelerator"]
 
 
-def make_preconditioner(name: str, model: Any):
+def make_preconditioner(name: str, model: Any, accelerator: str | None = None):
     """Preconditioner by its scene name (``solver.preconditioner``) for a model.
 
     ``"multigrid"`` (default): geometric multigrid for grid cloths, smoothed
-    aggregation for meshes (:mod:`implicit_cloth.solvers.multigrid`).
-    ``"block_jacobi"``: 3x3 block Jacobi.
+    aggregation for meshes (:mod:`implicit_cloth.solvers.multigrid`), run by
+    the compiled kernels when ``accelerator`` resolves to ``"numba"``
+    (:mod:`implicit_cloth.solvers.accel`; ``None``: the process default).
+    ``"block_jacobi"``: 3x3 block Jacobi (numpy only).
     """
     if name == "block_jacobi":
         return BlockJacobi(model.n)
     if name == "multigrid":
         from .multigrid import for_model
 
-        return for_model(model)
+        return for_model(model, accelerator)
     raise ValueError(f"solver.preconditioner: unknown preconditioner, got {name!r}")

@@ -22,7 +22,8 @@ def inv3(B: np.ndarray) -> np.ndarray:
     out[:, 2, 1] = b * g - a * h
     out[:, 2, 2] = a * e - b * d
     det = a * out[:, 0, 0] + b * out[:, 1, 0] + c * out[:, 2, 0]
-    out /= det[:, None, None]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):   # a singular (overflowed) block gives
+        out /= det[:, None, None]                                           # inf/nan, which the solve reports
     return out
 
 

@@ -188,6 +188,12 @@ def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: fl
     pessimistic when the residual is made of stiff modes (by 10-1000x after
     multigrid), tight when it is made of soft ones (after block Jacobi).
     """
+    fused = getattr(precond, "fused_pcg", None)
+    if fused is not None:                            # the same iteration compiled (numba), when it applies
+        out = fused(A, b, z, filt, tol=tol, max_iterations=max_iterations, guess=guess, mass=mass, rule=rule,
+                    min_delay=min_delay, delay_fraction=delay_fraction)
+        if out is not None:
+            return out
     zc = z - filt.apply(z.copy())                    # (I - S) z: the constrained part
     dv = zc.copy()
     r = filt.apply(b - A @ dv)
