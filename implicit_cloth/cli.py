@@ -399,16 +399,13 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if not _out_dir(out, debug):
         return EXIT_BAD_INPUT
     progress = (not args.no_progress) and sys.stderr.isatty()
-    try:
-        result = run_sweep(sweep, out, workers=args.workers, scheduler=args.scheduler,
-                           retry_failed=args.retry_failed, progress=progress,
-                           on_note=lambda m: print(f"{PROG}: warning: {_one_line(m)}", file=sys.stderr))
-    except SceneError as exc:   # the output directory is locked, the scheduler cannot be reached
-        _error(_one_line(exc), debug)
-        return EXIT_BAD_INPUT
-    except OSError as exc:
-        _error(f"cannot write results to {str(out)!r} ({exc.strerror or exc})", debug)
-        return EXIT_WRITE_FAILED
+    # a SceneError here: the output directory is locked, or the scheduler cannot be reached
+    code, result = _guarded(lambda: run_sweep(
+        sweep, out, workers=args.workers, scheduler=args.scheduler, retry_failed=args.retry_failed,
+        progress=progress, on_note=lambda m: print(f"{PROG}: warning: {_one_line(m)}", file=sys.stderr)),
+        debug, f"results to {str(out)!r}")
+    if code is not None:
+        return code
     c = result.counts
     print(f"cases        {len(sweep.cases)}: {c['ok']} ok, {c['diverged']} diverged, {c['failed']} failed, "
           f"{c['pending']} pending ({result.skipped} already finished before this run)")
@@ -420,6 +417,33 @@ def cmd_batch(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _guarded(call: Any, debug: bool, writing: str, extra: str | None = None) -> tuple[int | None, Any]:
+    """Run ``call()`` the command line's way; returns ``(exit code or None when it succeeded, its result)``.
+
+    A SceneError is its one line and exit 2; an OSError is ``cannot write <writing> (...)`` and exit 1; an
+    ImportError, when ``extra`` names the optional extra that provides it, says how to install it (exit 2).
+    Warnings raised meanwhile are printed as one line each.
+    """
+    caught: list[warnings.WarningMessage] = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("default")
+            return None, call()
+    except ImportError as exc:
+        if extra is None:
+            raise
+        return _missing_extra(exc, extra, debug), None
+    except SceneError as exc:
+        _error(_one_line(exc), debug)
+        return EXIT_BAD_INPUT, None
+    except OSError as exc:
+        _error(f"cannot write {writing} ({exc.strerror or exc})", debug)
+        return EXIT_WRITE_FAILED, None
+    finally:
+        for w in caught:
+            print(f"{PROG}: warning: {_one_line(w.message)}", file=sys.stderr)
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     """``implicit-cloth export``: per-frame meshes of a run."""
     from .export import export_run
@@ -427,72 +451,49 @@ def cmd_export(args: argparse.Namespace) -> int:
     debug = bool(args.debug)
     if args.out is not None and not _out_dir(Path(args.out), debug):
         return EXIT_BAD_INPUT
-    try:
-        files = export_run(args.run_dir, args.format, out=args.out, frames=args.frames)
-    except SceneError as exc:
-        _error(_one_line(exc), debug)
-        return EXIT_BAD_INPUT
-    except OSError as exc:
-        _error(f"cannot write meshes ({exc.strerror or exc})", debug)
-        return EXIT_WRITE_FAILED
+    code, files = _guarded(lambda: export_run(args.run_dir, args.format, out=args.out, frames=args.frames),
+                           debug, "meshes")
+    if code is not None:
+        return code
     where = files[0].parent if files else args.out
     print(f"wrote {len(files)} {args.format} file{'s' if len(files) != 1 else ''} to {where}", flush=True)
     return EXIT_OK
 
 
-def cmd_render(args: argparse.Namespace) -> int:
-    """``implicit-cloth render``: PNG of chosen frames and a movie of a run."""
+def _plots(args: argparse.Namespace, make: Any) -> int:
+    """render and compare: check the extra and ``--out``, run ``make()`` guarded, print the files written."""
     debug = bool(args.debug)
     try:
-        from .render import render_run
         import matplotlib  # noqa: F401
     except ImportError as exc:
         return _missing_extra(exc, "render", debug)
     if args.out is not None and not _out_dir(Path(args.out), debug):
         return EXIT_BAD_INPUT
-    caught: list[warnings.WarningMessage] = []
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("default")
-            files = render_run(args.run_dir, out=args.out, frames=args.frames, movie=args.movie, fps=args.fps,
-                               max_movie_frames=args.max_frames, dpi=args.dpi, elev=args.elev, azim=args.azim)
-    except ImportError as exc:
-        return _missing_extra(exc, "render", debug)
-    except SceneError as exc:
-        _error(_one_line(exc), debug)
-        return EXIT_BAD_INPUT
-    except OSError as exc:
-        _error(f"cannot write pictures ({exc.strerror or exc})", debug)
-        return EXIT_WRITE_FAILED
-    finally:
-        for w in caught:
-            print(f"{PROG}: warning: {_one_line(w.message)}", file=sys.stderr)
+    code, files = _guarded(make, debug, "pictures", extra="render")
+    if code is not None:
+        return code
     for f in files:
         print(f)
     return EXIT_OK
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    """``implicit-cloth render``: PNG of chosen frames and a movie of a run."""
+    def make():
+        from .render import render_run
+
+        return render_run(args.run_dir, out=args.out, frames=args.frames, movie=args.movie, fps=args.fps,
+                          max_movie_frames=args.max_frames, dpi=args.dpi, elev=args.elev, azim=args.azim)
+    return _plots(args, make)
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
     """``implicit-cloth compare``: plots of a sweep's summary."""
-    debug = bool(args.debug)
-    try:
+    def make():
         from .compare import compare_sweep
-        import matplotlib  # noqa: F401
-    except ImportError as exc:
-        return _missing_extra(exc, "render", debug)
-    if args.out is not None and not _out_dir(Path(args.out), debug):
-        return EXIT_BAD_INPUT
-    try:
-        files = compare_sweep(args.dir, x=args.x, by=args.by, metrics=args.metrics, plots=args.out)
-    except SceneError as exc:
-        _error(_one_line(exc), debug)
-        return EXIT_BAD_INPUT
-    except OSError as exc:
-        _error(f"cannot write plots ({exc.strerror or exc})", debug)
-        return EXIT_WRITE_FAILED
-    for f in files:
-        print(f)
-    return EXIT_OK
+
+        return compare_sweep(args.dir, x=args.x, by=args.by, metrics=args.metrics, plots=args.out)
+    return _plots(args, make)
 
 
 # --------------------------------------------------------------------------- entry point
