@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import sys
@@ -82,3 +81,8 @@ def save_png(fig, path: Path, dpi: int = 120) -> None:
 #: ``[simulation.adaptive]`` for benchmarks that measure an integrator itself (its stability region, its numerical
 #: damping): adaptive stepping (on by default for the implicit methods) would hide exactly what they measure.
 FIXED_STEPS = {"enabled": False}
+
+
+#: Marker and colour of each integrator in every benchmark plot.
+STYLE = {"forward_euler": ("v", "tab:red"), "symplectic_euler": ("o", "tab:blue"), "verlet": ("s", "tab:cyan"),
+         "rk4": ("D", "tab:purple"), "backward_euler": ("^", "tab:green"), "bdf2": ("P", "tab:olive")}

@@ -74,7 +74,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import FIXED_STEPS, ROOT, ic, machine, progress, save_png, write_outputs
+from _common import FIXED_STEPS, ROOT, STYLE, ic, machine, progress, save_png, write_outputs
 from implicit_cloth import diagnostics
 
 EXPLICIT = ("forward_euler", "symplectic_euler", "verlet", "rk4")
@@ -274,10 +274,6 @@ def markdown(res: dict) -> str:
             for h in dts if h >= 1e-3) + ".")
         out.append("")
     return "\n".join(out)
-
-
-STYLE = {"forward_euler": ("v", "tab:red"), "symplectic_euler": ("o", "tab:blue"), "verlet": ("s", "tab:cyan"),
-         "rk4": ("D", "tab:purple"), "backward_euler": ("^", "tab:green"), "bdf2": ("P", "tab:olive")}
 
 
 def plot(res: dict, path: Path) -> None:

@@ -97,7 +97,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from _common import FIXED_STEPS, ROOT, hanging_stiff, ic, machine, progress, save_png, write_outputs
+from _common import FIXED_STEPS, ROOT, STYLE, hanging_stiff, ic, machine, progress, save_png, write_outputs
 from implicit_cloth import diagnostics
 
 EXPLICIT = ("forward_euler", "symplectic_euler", "verlet", "rk4")
@@ -344,10 +344,6 @@ def markdown(res: dict) -> str:
                    "(listed in the JSON).")
     out.append("")
     return "\n".join(out)
-
-
-STYLE = {"forward_euler": ("v", "tab:red"), "symplectic_euler": ("o", "tab:blue"), "verlet": ("s", "tab:cyan"),
-         "rk4": ("D", "tab:purple"), "backward_euler": ("^", "tab:green"), "bdf2": ("P", "tab:olive")}
 
 
 def plot(res: dict, path: Path) -> None:

@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 import implicit_cloth as ic
-from implicit_cloth import diagnostics
 from implicit_cloth.adaptive import StepController
 from implicit_cloth.integrators import StepInfo
 from implicit_cloth.model import State

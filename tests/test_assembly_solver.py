@@ -79,7 +79,6 @@ def test_system_matrix_block_csr_layout():
 
 def _constrained_direct(A, b, z, S):
     """Reference: dv = z_c + S y with S A S y = S (b - A z_c), solved densely on the free subspace."""
-    n3 = len(b)
     Sd = sp.block_diag(list(S)).toarray()
     zc = z - Sd @ z
     # basis of range(S)

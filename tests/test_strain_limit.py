@@ -6,7 +6,6 @@ import pytest
 
 import implicit_cloth as ic
 from implicit_cloth.model import State
-from implicit_cloth.strain_limit import StrainLimiter
 
 G = 9.81
 

@@ -17,7 +17,6 @@ backward-Euler step.
 
 from __future__ import annotations
 
-import numpy as np
 
 from ..model import State
 from .backward_euler import BackwardEuler
