@@ -245,7 +245,7 @@ def _summary(traj: Trajectory, npz: Path, js: Path) -> str:
     s = r.get("solver")
     if s:
         lines.append(
-            f"solver       {s['preconditioner']} PCG, iterations mean {s['mean_iterations']:.1f} / "
+            f"solver       {s['preconditioner']} PCG ({s.get('accelerator', 'numpy')}), iterations mean {s['mean_iterations']:.1f} / "
             f"max {s['max_iterations']}, max residual {s['max_residual']:.3g} (tolerance {s['tolerance']:g}), "
             f"unconverged steps {s['unconverged_steps']}")
     a = r.get("adaptive")

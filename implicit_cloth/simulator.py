@@ -416,6 +416,8 @@ class Simulator:
                 "tolerance": self.integrator.tolerance,
                 "max_iterations_allowed": self.integrator.max_iterations,
                 "preconditioner": self.integrator.precond.name,
+                # which implementation ran the preconditioned CG: "numba" (the fast extra) or "numpy"
+                "accelerator": getattr(self.integrator.precond, "accelerator", "numpy"),
                 "mean_iterations": totals["iterations"] / n,
                 "max_iterations": totals["max_iterations"],
                 "max_residual": totals["max_residual"],

@@ -274,3 +274,20 @@ def test_numba_float32_vcycle_matches_direct_solve(monkeypatch, tol):
     assert res.converged and np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= tol
     d3, z3 = dv.reshape(-1, 3), z.reshape(-1, 3)
     assert np.array_equal(d3[m.pinned], z3[m.pinned]) and d3[m.n // 2, 2] == z3[m.n // 2, 2]
+
+
+def test_run_report_names_the_accelerator_that_ran():
+    from implicit_cloth.solvers import set_default_accelerator
+
+    scene = {"cloth": {"resolution": [6, 6], "mass": 0.1, "pins": ["top_left"],
+                       "springs": {"structural": {"stiffness": 100.0}}},
+             "simulation": {"dt": 0.01, "duration": 0.03}}
+    try:
+        for acc in ("numpy",) + (("numba",) if numba_available() else ()):
+            set_default_accelerator(acc)
+            assert ic.Simulator(scene).run().report["solver"]["accelerator"] == acc
+        set_default_accelerator("numpy")
+        assert ic.Simulator(scene, solver={"preconditioner": "block_jacobi"}).run().report["solver"][
+            "accelerator"] == "numpy"
+    finally:
+        set_default_accelerator(None)
