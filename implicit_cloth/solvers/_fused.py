@@ -54,33 +54,39 @@ def filter_vec(cidx_list, Sc, x):
         x[3 * i], x[3 * i + 1], x[3 * i + 2] = y0, y1, y2
 
 
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _row(bptr, bcol, vals, cidx, Sc, filtered, x, i):
+    """Block row ``i`` of ``A x`` (of ``S A S x + (I - S) x`` with ``filtered``), as three numbers."""
+    a0 = 0.0
+    a1 = 0.0
+    a2 = 0.0
+    for k in range(bptr[i], bptr[i + 1]):
+        j = bcol[k]
+        x0 = x[3 * j]
+        x1 = x[3 * j + 1]
+        x2 = x[3 * j + 2]
+        if filtered and cidx[j] >= 0:
+            x0, x1, x2 = _filt3(Sc, cidx[j], x0, x1, x2)
+        v = vals[k]
+        a0 += v[0, 0] * x0 + v[0, 1] * x1 + v[0, 2] * x2
+        a1 += v[1, 0] * x0 + v[1, 1] * x1 + v[1, 2] * x2
+        a2 += v[2, 0] * x0 + v[2, 1] * x1 + v[2, 2] * x2
+    if filtered and cidx[i] >= 0:
+        c = cidx[i]
+        xi0, xi1, xi2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
+        a0, a1, a2 = _filt3(Sc, c, a0, a1, a2)
+        s0, s1, s2 = _filt3(Sc, c, xi0, xi1, xi2)
+        a0 += xi0 - s0
+        a1 += xi1 - s1
+        a2 += xi2 - s2
+    return a0, a1, a2
+
+
 @njit(cache=True, fastmath={"contract"})
 def _matvec(bptr, bcol, vals, cidx, Sc, filtered, x, y):
     """``y = A x``; with ``filtered``: ``y = S A S x + (I - S) x`` (the filtered matrix of the module docstring)."""
-    n = len(bptr) - 1
-    for i in range(n):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        for k in range(bptr[i], bptr[i + 1]):
-            j = bcol[k]
-            x0 = x[3 * j]
-            x1 = x[3 * j + 1]
-            x2 = x[3 * j + 2]
-            if filtered and cidx[j] >= 0:
-                x0, x1, x2 = _filt3(Sc, cidx[j], x0, x1, x2)
-            v = vals[k]
-            a0 += v[0, 0] * x0 + v[0, 1] * x1 + v[0, 2] * x2
-            a1 += v[1, 0] * x0 + v[1, 1] * x1 + v[1, 2] * x2
-            a2 += v[2, 0] * x0 + v[2, 1] * x1 + v[2, 2] * x2
-        if filtered and cidx[i] >= 0:
-            c = cidx[i]
-            xi0, xi1, xi2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
-            a0, a1, a2 = _filt3(Sc, c, a0, a1, a2)
-            s0, s1, s2 = _filt3(Sc, c, xi0, xi1, xi2)
-            a0 += xi0 - s0
-            a1 += xi1 - s1
-            a2 += xi2 - s2
+    for i in range(len(bptr) - 1):
+        a0, a1, a2 = _row(bptr, bcol, vals, cidx, Sc, filtered, x, i)
         y[3 * i] = a0
         y[3 * i + 1] = a1
         y[3 * i + 2] = a2
@@ -101,30 +107,8 @@ def _presmooth(dinv, omega, b, x):
 @njit(cache=True, fastmath={"contract"})
 def _residual(bptr, bcol, vals, cidx, Sc, filtered, b, x, r):
     """``r = b - A x`` (``A`` filtered as in :func:`_matvec` when ``filtered``)."""
-    n = len(bptr) - 1
-    for i in range(n):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        for k in range(bptr[i], bptr[i + 1]):
-            j = bcol[k]
-            x0 = x[3 * j]
-            x1 = x[3 * j + 1]
-            x2 = x[3 * j + 2]
-            if filtered and cidx[j] >= 0:
-                x0, x1, x2 = _filt3(Sc, cidx[j], x0, x1, x2)
-            v = vals[k]
-            a0 += v[0, 0] * x0 + v[0, 1] * x1 + v[0, 2] * x2
-            a1 += v[1, 0] * x0 + v[1, 1] * x1 + v[1, 2] * x2
-            a2 += v[2, 0] * x0 + v[2, 1] * x1 + v[2, 2] * x2
-        if filtered and cidx[i] >= 0:
-            c = cidx[i]
-            xi0, xi1, xi2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
-            a0, a1, a2 = _filt3(Sc, c, a0, a1, a2)
-            s0, s1, s2 = _filt3(Sc, c, xi0, xi1, xi2)
-            a0 += xi0 - s0
-            a1 += xi1 - s1
-            a2 += xi2 - s2
+    for i in range(len(bptr) - 1):
+        a0, a1, a2 = _row(bptr, bcol, vals, cidx, Sc, filtered, x, i)
         r[3 * i] = b[3 * i] - a0
         r[3 * i + 1] = b[3 * i + 1] - a1
         r[3 * i + 2] = b[3 * i + 2] - a2
