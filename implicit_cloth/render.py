@@ -49,7 +49,7 @@ def _local_triangles(spec: Mapping[str, Any]) -> np.ndarray:
 
     shape = spec["shape"]
     if shape == "sphere":
-        m = trimesh.creation.icosphere(subdivisions=2, radius=float(spec["radius"]))
+        m = trimesh.creation.icosphere(subdivisions=3, radius=float(spec["radius"]))
     elif shape == "box":
         m = trimesh.creation.box(extents=spec["size"])
     elif shape == "cone":
