@@ -141,30 +141,9 @@ def _transfer(ptr, idx, val, x, y, add):
 @njit(cache=True, fastmath={"contract"})
 def _postsmooth(bptr, bcol, vals, cidx, Sc, filtered, dinv, omega, b, x, y):
     """Post-smoothing: ``y = x + omega D^-1 (b - A x)`` (``y`` may alias ``b``, not ``x``)."""
-    n = len(bptr) - 1
-    for i in range(n):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        for k in range(bptr[i], bptr[i + 1]):
-            j = bcol[k]
-            x0 = x[3 * j]
-            x1 = x[3 * j + 1]
-            x2 = x[3 * j + 2]
-            if filtered and cidx[j] >= 0:
-                x0, x1, x2 = _filt3(Sc, cidx[j], x0, x1, x2)
-            v = vals[k]
-            a0 += v[0, 0] * x0 + v[0, 1] * x1 + v[0, 2] * x2
-            a1 += v[1, 0] * x0 + v[1, 1] * x1 + v[1, 2] * x2
-            a2 += v[2, 0] * x0 + v[2, 1] * x1 + v[2, 2] * x2
+    for i in range(len(bptr) - 1):
+        a0, a1, a2 = _row(bptr, bcol, vals, cidx, Sc, filtered, x, i)
         xi0, xi1, xi2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
-        if filtered and cidx[i] >= 0:
-            c = cidx[i]
-            a0, a1, a2 = _filt3(Sc, c, a0, a1, a2)
-            s0, s1, s2 = _filt3(Sc, c, xi0, xi1, xi2)
-            a0 += xi0 - s0
-            a1 += xi1 - s1
-            a2 += xi2 - s2
         r0 = b[3 * i] - a0
         r1 = b[3 * i + 1] - a1
         r2 = b[3 * i + 2] - a2
