@@ -167,6 +167,27 @@ def _lerp(x0, x1, s):
     return x0 + s[:, None] * (x1 - x0)
 
 
+def _earliest_hit(f, hit, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Earliest root of the cubic ``f(s)`` (sampled at 0, 1/3, 2/3, 1) at which ``hit(cand, s)`` holds.
+
+    ``f(s)`` returns the (K,) values of K cubics in ``s``; ``hit(cand, s)`` says which candidates (indices)
+    are in contact at their root ``s``. Returns the time of impact (inf if none) and the side before it.
+    """
+    samples = np.column_stack([f(s) for s in (0.0, 1 / 3, 2 / 3, 1.0)])
+    roots, coef = _cubic_roots(samples)
+    toi = np.full(k, np.inf)
+    which = np.zeros(k, dtype=np.int64)
+    for j in range(3):                      # the (at most three) roots in increasing order
+        cand = np.flatnonzero(np.isfinite(roots[:, j]) & ~np.isfinite(toi))
+        if not len(cand):
+            continue
+        s = roots[cand, j]
+        ok = hit(cand, s)
+        toi[cand[ok]] = s[ok]
+        which[cand[ok]] = j
+    return toi, _side_before(roots, coef, toi, which)
+
+
 def point_triangle_toi(p0, p1, a0, a1, b0, b1, c0, c1, tol: float) -> tuple[np.ndarray, np.ndarray]:
     """Earliest ``s`` at which the moving point meets the moving triangle (inf if never), and its side.
 
@@ -187,22 +208,13 @@ def point_triangle_toi(p0, p1, a0, a1, b0, b1, c0, c1, tol: float) -> tuple[np.n
         n = np.cross(_lerp(b0, b1, s) - a, _lerp(c0, c1, s) - a)
         return _dot(n, _lerp(p0, p1, s) - a)
 
-    samples = np.column_stack([f(s) for s in (0.0, 1 / 3, 2 / 3, 1.0)])
-    roots, coef = _cubic_roots(samples)
-    toi = np.full(len(p0), np.inf)
-    which = np.zeros(len(p0), dtype=np.int64)
-    for j in range(3):
-        cand = np.flatnonzero(np.isfinite(roots[:, j]) & ~np.isfinite(toi))
-        if not len(cand):
-            continue
-        s = roots[cand, j]
+    def hit(cand, s):
         p = _lerp(p0[cand], p1[cand], s)
         q, _ = point_triangle_closest(p, _lerp(a0[cand], a1[cand], s), _lerp(b0[cand], b1[cand], s),
                                       _lerp(c0[cand], c1[cand], s))
-        hit = _dot(p - q, p - q) <= tol * tol
-        toi[cand[hit]] = s[hit]
-        which[cand[hit]] = j
-    return toi, _side_before(roots, coef, toi, which)
+        return _dot(p - q, p - q) <= tol * tol
+
+    return _earliest_hit(f, hit, len(p0))
 
 
 def edge_edge_toi(p0, p1, q0, q1, u0, u1, w0, w1, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -220,20 +232,11 @@ def edge_edge_toi(p0, p1, q0, q1, u0, u1, w0, w1, tol: float) -> tuple[np.ndarra
         n = np.cross(_lerp(q0, q1, s) - p, _lerp(w0, w1, s) - u)
         return _dot(n, u - p)
 
-    samples = np.column_stack([f(s) for s in (0.0, 1 / 3, 2 / 3, 1.0)])
-    roots, coef = _cubic_roots(samples)
-    toi = np.full(len(p0), np.inf)
-    which = np.zeros(len(p0), dtype=np.int64)
-    for j in range(3):
-        cand = np.flatnonzero(np.isfinite(roots[:, j]) & ~np.isfinite(toi))
-        if not len(cand):
-            continue
-        s = roots[cand, j]
+    def hit(cand, s):
         p, q = _lerp(p0[cand], p1[cand], s), _lerp(q0[cand], q1[cand], s)
         u, w = _lerp(u0[cand], u1[cand], s), _lerp(w0[cand], w1[cand], s)
         a, b = segment_closest(p, q, u, w)
         gap = (p + a[:, None] * (q - p)) - (u + b[:, None] * (w - u))
-        hit = _dot(gap, gap) <= tol * tol
-        toi[cand[hit]] = s[hit]
-        which[cand[hit]] = j
-    return toi, _side_before(roots, coef, toi, which)
+        return _dot(gap, gap) <= tol * tol
+
+    return _earliest_hit(f, hit, len(p0))
