@@ -104,7 +104,7 @@ def test_filtered_pcg_matches_direct_constrained_solve():
     partial_S = np.stack([np.eye(3) - np.outer(nrm, nrm), np.eye(3) - np.outer(e1, e1) - np.outer(e2, e2)])
     filt = Filter(m.n, m.pinned, partial, partial_S)
     pc = BlockJacobi(m.n)
-    pc.setup(m.system.diagonal_blocks(), filt)
+    pc.setup(m.system, filt)
     dv, res = filtered_pcg(A, b, z, filt, pc, tol=1e-12, max_iterations=2000)
     ref = _constrained_direct(A.toarray(), b, z, filt.matrices())
     assert res.converged
@@ -126,7 +126,7 @@ def test_pcg_reports_non_convergence():
     A, _, _ = m.linearize(sim.positions, sim.velocities, 0.0, 0.1, 0.1)
     filt = Filter(m.n, m.pinned)
     pc = BlockJacobi(m.n)
-    pc.setup(m.system.diagonal_blocks(), filt)
+    pc.setup(m.system, filt)
     b = rng.standard_normal(3 * m.n)
     _, res = filtered_pcg(A, b, np.zeros_like(b), filt, pc, tol=1e-10, max_iterations=3)
     assert not res.converged and res.iterations == 3 and res.residual > 1e-10

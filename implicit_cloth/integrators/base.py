@@ -93,7 +93,7 @@ class ImplicitIntegrator(Integrator):
     def _solve(self, A, b: np.ndarray, z: np.ndarray, info: StepInfo) -> np.ndarray:
         """Solve ``A dv = b`` with pins prescribing ``dv = z`` through the filter."""
         t0 = time.perf_counter()
-        self.precond.setup(self.model.system.diagonal_blocks(), self.filter)
+        self.precond.setup(self.model.system, self.filter)
         t1 = time.perf_counter()
         dv, res = filtered_pcg(A, b.reshape(-1), z.reshape(-1), self.filter, self.precond,
                                self.tolerance, self.max_iterations, mass=self._mass3,

@@ -161,8 +161,12 @@ class Multigrid:
     def n_levels(self) -> int:
         return len(self.levels) + 1
 
-    def setup(self, diag_blocks: np.ndarray, filt: Filter) -> None:
-        """Refresh every level from the fine system's current values (call after assembly)."""
+    def setup(self, system: SystemMatrix | None, filt: Filter) -> None:
+        """Refresh every level from the fine system's current values (call after assembly).
+
+        ``system`` is the assembled fine system (the one this hierarchy was built on, read through
+        ``self.fine``); it is part of the preconditioner protocol shared with :class:`BlockJacobi`.
+        """
         if self.accelerator == "numba":
             self._fused.setup(filt)
         else:

@@ -112,8 +112,9 @@ class BlockJacobi:
         self.n = n
         self._P = block_diagonal_operator(n)
 
-    def setup(self, diag_blocks: np.ndarray, filt: Filter) -> None:
-        B = diag_blocks
+    def setup(self, system, filt: Filter) -> None:
+        """Invert the filtered diagonal blocks of the assembled ``system`` (a SystemMatrix)."""
+        B = system.diagonal_blocks()
         if not filt.trivial:
             S = filt.matrices()
             B = S @ B @ S + (np.eye(3)[None] - S)
