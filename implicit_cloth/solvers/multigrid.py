@@ -299,24 +299,29 @@ def _csr_from_blocks(sm: SystemMatrix, blocks: np.ndarray) -> sp.csr_array:
 
 
 #: From this many fine vertices on, the compiled V-cycle keeps its matrices in float32 (vectors, sums, the
-#: Galerkin products, the coarse Cholesky and CG itself stay float64). The matrix data then halve, which pays
-#: once they no longer fit in cache: same iterations, step 1.28x faster at 128² on the test machine, but 4-13 %
-#: slower at 32²-64² (the conversions cost more than the memory traffic they save).
-FLOAT32_MIN_VERTICES = 10_000
+#: Galerkin products, the coarse Cholesky and CG itself stay float64). With the symmetric half storage the
+#: matrix passes are no longer limited by memory traffic at these sizes and the conversions cost more than
+#: they save, so it is off by default (``None``); set a vertex count to enable it.
+FLOAT32_MIN_VERTICES: int | None = None
 
 
 class _FusedHierarchy:
     """The hierarchy packed into flat arrays for the compiled kernels (:mod:`._fused`), and their drivers.
 
-    Coarse levels' block values live in one array (each coarse
-    :class:`SystemMatrix`'s ``blocks`` is a view into it), refreshed by the same
-    Galerkin maps as the numpy path. The V-cycle's copy of the fine level's
-    values is taken at setup (one pass, the snapshot the numpy path also
-    takes; float32 from :data:`FLOAT32_MIN_VERTICES` on), while the compiled
-    CG multiplies by the system's own float64 blocks. The filter is applied on
-    the fly; the Galerkin product of the filtered fine matrix is the
-    unfiltered one plus a correction from the few blocks that touch a
-    constrained vertex.
+    Every level's matrix is symmetric, so the kernels store only its
+    diagonal blocks and its upper blocks (``i < j``; the lower block
+    ``(j, i)`` is the transpose), packed level after level, and multiply
+    with one pass over each stored block that serves both ``(i, j)`` and
+    ``(j, i)`` (:func:`._fused._symmv`): half the matrix data read per pass
+    and a flat loop, 2-5x faster than a CSR or block-row product on the test
+    machine. The coarse levels' block values are refreshed by the same
+    Galerkin maps as the numpy path and then packed; the fine level's are
+    gathered from the assembled blocks at setup (one pass over half of them),
+    for CG's products and for the V-cycle (a float32 copy for the latter from
+    :data:`FLOAT32_MIN_VERTICES` on, when set). The filter is applied on the
+    fly on the finest level; the Galerkin product of the filtered fine
+    matrix is the unfiltered one plus a correction from the few blocks that
+    touch a constrained vertex.
     """
 
     def __init__(self, mg: Multigrid, prolongations: list) -> None:
@@ -327,24 +332,21 @@ class _FusedHierarchy:
         L = len(mg.levels)
         fine = mg.fine
         self.voff = np.cumsum([0] + [sm.n for sm in systems]).astype(np.int64)
-        f = self.precond_dtype = np.float32 if fine.n >= FLOAT32_MIN_VERTICES else np.float64
-        self.bcol0 = np.ascontiguousarray(fine.block_cols, dtype=np.int32)
-        self.vals0 = np.zeros(fine.blocks.shape, dtype=f)
-        coarse = systems[1:]
-        nbs = [sm.n_blocks for sm in coarse]
-        self.blkoff = np.concatenate([[0, 0], np.cumsum(nbs)]).astype(np.int64)
-        self.lvals = np.zeros((int(sum(nbs)), 3, 3))
-        for l, sm in enumerate(coarse, start=1):
-            sm.blocks = self.lvals[self.blkoff[l]:self.blkoff[l + 1]]
-        self.rowoff = np.zeros(L + 1, dtype=np.int64)
-        ptrs = []
-        for l, sm in enumerate(coarse, start=1):
-            self.rowoff[l] = sum(len(x) for x in ptrs)
-            ptrs.append(sm.bptr)
-        self.lbptr = np.concatenate(ptrs).astype(np.int64) if ptrs else np.zeros(1, dtype=np.int64)
-        self.lvals_p = self.lvals if f == self.lvals.dtype else np.zeros(self.lvals.shape, dtype=f)
-        self.lbcol = np.concatenate([sm.block_cols for sm in coarse]).astype(np.int32) if coarse \
-            else np.zeros(0, dtype=np.int32)
+        f = self.precond_dtype = (np.float32 if FLOAT32_MIN_VERTICES is not None
+                                  and fine.n >= FLOAT32_MIN_VERTICES else np.float64)
+        self._uidx = [np.flatnonzero(sm.block_rows < sm.block_cols) for sm in systems]
+        nup = [len(u) for u in self._uidx]
+        self.uoff = np.cumsum([0] + nup).astype(np.int64)
+        self.uI = np.concatenate([sm.block_rows[u] for sm, u in zip(systems, self._uidx)]).astype(np.int32)
+        self.uJ = np.concatenate([sm.block_cols[u] for sm, u in zip(systems, self._uidx)]).astype(np.int32)
+        self.dg = np.zeros((int(self.voff[-1]), 3, 3), dtype=f)
+        self.uv = np.zeros((int(self.uoff[-1]), 3, 3), dtype=f)
+        n0, u0 = fine.n, nup[0]
+        if f == np.float64:                      # CG and the V-cycle share the fine level's arrays
+            self.adg, self.auv = self.dg[:n0], self.uv[:u0]
+        else:
+            self.adg, self.auv = np.zeros((n0, 3, 3)), np.zeros((u0, 3, 3))
+        self.auI, self.auJ = self.uI[:u0], self.uJ[:u0]
         self.poff = np.zeros(max(L, 1), dtype=np.int64)
         self.pnnz = np.zeros(L + 1, dtype=np.int64)
         pp, pi, pv = [], [], []
@@ -380,11 +382,16 @@ class _FusedHierarchy:
         self._touch_key = None
 
     def _filter_arrays(self, filt: Filter) -> None:
-        n = self.mg.fine.n
         self.clist = np.concatenate([filt.fixed, filt.partial]).astype(np.int64)
-        self.Sc = np.concatenate([np.zeros((len(filt.fixed), 3, 3)), filt.partial_S]).reshape(-1, 3, 3)
-        self.cidx = np.full(n, -1, dtype=np.int64)
-        self.cidx[self.clist] = np.arange(len(self.clist))
+        self.Sc = np.ascontiguousarray(
+            np.concatenate([np.zeros((len(filt.fixed), 3, 3)), filt.partial_S]).reshape(-1, 3, 3))
+        self.ws = np.zeros(3 * len(self.clist))
+
+    def _pack(self, l: int, sm: SystemMatrix) -> None:
+        """Level l's diagonal and upper blocks into the packed arrays."""
+        v0, v1, u0, u1 = self.voff[l], self.voff[l + 1], self.uoff[l], self.uoff[l + 1]
+        self.dg[v0:v1] = sm.blocks[sm.diag_index]
+        self.uv[u0:u1] = sm.blocks[self._uidx[l]]
 
     def setup(self, filt: Filter) -> None:
         mg, fine = self.mg, self.mg.fine
@@ -392,11 +399,14 @@ class _FusedHierarchy:
         L = len(mg.levels)
         self.filt = filt
         self._filter_arrays(filt)
-        self.vals0[...] = fine.blocks
+        np.take(fine.blocks, fine.diag_index, axis=0, out=self.adg)
+        np.take(fine.blocks, self._uidx[0], axis=0, out=self.auv)
+        if self.precond_dtype != np.float64:
+            self._pack(0, fine)                  # the V-cycle's float32 copy
         self.version = fine.version
         c, Sc = self.clist, self.Sc
         eye = np.eye(3)
-        D = fine.blocks[fine.diag_index]
+        D = self.adg.copy()
         if len(c):
             D[c] = Sc @ D[c] @ Sc + (eye - Sc)
         n0 = fine.n
@@ -421,9 +431,8 @@ class _FusedHierarchy:
                 sm.blocks.reshape(-1, 9)[...] += Tt @ delta.reshape(-1, 9)
             prev = sm.blocks
             if l < L:
+                self._pack(l, sm)
                 self.dinv[self.voff[l]:self.voff[l + 1]] = inv3(sm.blocks[sm.diag_index])
-        if self.lvals_p is not self.lvals:
-            self.lvals_p[...] = self.lvals
         mg._A = [None] * L + [systems[L].finalize()]
 
     def _touched(self, filt: Filter):
@@ -451,7 +460,7 @@ class _FusedHierarchy:
 
     def _hier(self):
         C, upper = self._coarse()
-        return (self.lbptr, self.lbcol, self.lvals_p, self.rowoff, self.blkoff, self.dinv, self.voff,
+        return (self.dg, self.uI, self.uJ, self.uv, self.voff, self.uoff, self.clist, self.Sc, self.ws, self.dinv,
                 self.pptr, self.pidx, self.pval, self.poff, self.pnnz, self.tptr, self.tidx, self.tval, self.toff,
                 C, upper, self.mg.omega)
 
@@ -460,8 +469,7 @@ class _FusedHierarchy:
 
         r = np.ascontiguousarray(r, dtype=float)
         out = np.empty_like(r)
-        _fused.vcycle(r, out, self.mg.fine.bptr, self.bcol0, self.vals0, self.cidx, self.Sc, *self._hier(),
-                      self.wb, self.wx, self.wr)
+        _fused.vcycle(r, out, *self._hier(), self.wb, self.wx, self.wr)
         return out
 
     def pcg(self, A, b, z, filt, tol=1e-3, max_iterations=1000, guess=None, mass=None, rule="estimate",
@@ -472,8 +480,9 @@ class _FusedHierarchy:
         if A is not fine.csr or fine.version != self.version or filt is not self.filt:
             return None
         f = lambda a: np.ascontiguousarray(a, dtype=float).reshape(-1)  # noqa: E731
+        h = self._hier()
         dv, it, res, conv, err = _fused.pcg(
-            fine.bptr, self.bcol0, self.vals0, fine.blocks, self.cidx, self.Sc, self.clist, *self._hier(),
+            self.adg, self.auI, self.auJ, self.auv, h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], *h[9:],
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
             f(mass) if mass is not None else np.zeros(0), mass is not None, float(tol), int(max_iterations),
             rule == "bound", int(min_delay), float(delay_fraction))
