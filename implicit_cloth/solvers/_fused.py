@@ -390,3 +390,47 @@ def pcg(adg, auI, auJ, auv, dg, uI, uJ, uv, voff, uoff, clist, Sc, dinv,
     filter_vec(clist, Sc, q)
     res = np.sqrt(_dot(q, q)) / norm0
     return dv, it, res, converged, error
+
+
+@njit(cache=True, fastmath={"contract"})
+def galerkin(sd, su, od, ou, d_src, d_dst, d_w, d_todiag, u_src, u_dst, u_w, u_mode):
+    """Galerkin product ``P^T A P`` of a symmetric block matrix in the storage of :func:`_symmv`,
+    for a prolongation ``P kron I3``, written into the coarse level's diagonal (``od``) and upper (``ou``) blocks.
+
+    All block arrays are flat (9 numbers a block, row-major). ``sd``, ``su``: the fine level's diagonal and
+    upper blocks. Each entry of the precomputed lists adds ``w = P[i, I] P[j, J]`` times a fine block to
+    one coarse block (one entry per pair of prolongation entries):
+
+    * ``d_*``: from diagonal block ``src`` to ``od[dst]`` (``d_todiag``) or ``ou[dst]``;
+    * ``u_*``: from upper block ``B = su[src]`` (fine blocks ``(i, j)`` and ``(j, i) = B^T``) with
+      ``u_mode`` 0: ``ou[dst] += w B`` (``I < J``), 1: ``ou[dst] += w B^T`` (``I > J``: the stored coarse
+      block is ``(J, I)``), 2: ``od[dst] += w (B + B^T)`` (``I = J``).
+    """
+    od[:] = 0.0
+    ou[:] = 0.0
+    for e in range(len(d_src)):
+        s = 9 * d_src[e]
+        t = 9 * d_dst[e]
+        w = d_w[e]
+        if d_todiag[e]:
+            for k in range(9):
+                od[t + k] += w * sd[s + k]
+        else:
+            for k in range(9):
+                ou[t + k] += w * sd[s + k]
+    for e in range(len(u_src)):
+        s = 9 * u_src[e]
+        t = 9 * u_dst[e]
+        w = u_w[e]
+        m = u_mode[e]
+        if m == 0:
+            for k in range(9):
+                ou[t + k] += w * su[s + k]
+        elif m == 1:
+            for a in range(3):
+                for b in range(3):
+                    ou[t + 3 * a + b] += w * su[s + 3 * b + a]
+        else:
+            for a in range(3):
+                for b in range(3):
+                    od[t + 3 * a + b] += w * (su[s + 3 * a + b] + su[s + 3 * b + a])

@@ -169,9 +169,11 @@ class Multigrid:
         """
         if self.accelerator == "numba":
             self._fused.setup(filt)
+            C = self._fused.coarse_dense() if self.levels else self._A[-1].toarray()
         else:
             self._setup_numpy(filt)
-        self._chol, self.coarse_shift = coarse_cholesky(self._A[-1].toarray())
+            C = self._A[-1].toarray()
+        self._chol, self.coarse_shift = coarse_cholesky(C)
 
     def _setup_numpy(self, filt: Filter) -> None:
         """Level matrices as CSR and inverted diagonal blocks as block-diagonal CSR (the reference path)."""
@@ -269,6 +271,45 @@ def coarse_cholesky(C: np.ndarray, max_tries: int = 40) -> tuple[tuple[np.ndarra
             tau *= 10.0
     # unreachable for a finite symmetric C: tau has passed its largest eigenvalue bound n max|C_ij|
     return (np.eye(len(C)), False), float("nan")
+
+
+def _galerkin_entries(fine: SystemMatrix, coarse: SystemMatrix, fine_up: np.ndarray, coarse_up: np.ndarray,
+                      P) -> tuple:
+    """Entry lists of :func:`._fused.galerkin` for ``coarse = P^T fine P`` (``P kron I3``), both levels in
+    diagonal + upper-block storage (``*_up``: positions of the upper blocks in each level's block list)."""
+    P = sp.csr_array(P)
+    P.sort_indices()
+    ptr, idx, val = P.indptr, P.indices, P.data
+    upos = np.full(coarse.n_blocks, -1, dtype=np.int64)
+    upos[coarse_up] = np.arange(len(coarse_up))
+
+    def expand(br, bc):
+        cr, cc = ptr[br + 1] - ptr[br], ptr[bc + 1] - ptr[bc]
+        per = cr * cc
+        src = np.repeat(np.arange(len(br)), per)
+        k = np.arange(len(src)) - np.repeat(np.cumsum(per) - per, per)
+        a, b = ptr[br[src]] + k // cc[src], ptr[bc[src]] + k % cc[src]
+        return src, idx[a].astype(np.int64), idx[b].astype(np.int64), val[a] * val[b]
+
+    # diagonal blocks (i, i): pairs (I, J) of row i's entries with I <= J
+    i = np.arange(fine.n)
+    src, I, J, w = expand(i, i)
+    keep = I <= J
+    src, I, J, w = src[keep], I[keep], J[keep], w[keep]
+    todiag = I == J
+    dst = np.where(todiag, I, upos[coarse.block_index(I, J)] if len(I) else I)
+    d = (src.astype(np.int64), dst.astype(np.int64), w, todiag)
+    # upper blocks (i, j), i < j
+    src, I, J, w = expand(fine.block_rows[fine_up], fine.block_cols[fine_up])
+    mode = np.where(I < J, 0, np.where(I > J, 1, 2))
+    lo, hi = np.minimum(I, J), np.maximum(I, J)
+    off = lo != hi
+    dst = lo.copy()
+    if off.any():
+        dst[off] = upos[coarse.block_index(lo[off], hi[off])]
+    u = (src.astype(np.int64), dst.astype(np.int64), w, mode.astype(np.int64))
+    assert (d[1] >= 0).all() and (u[1] >= 0).all()
+    return d + u
 
 
 def _filtered_blocks(sm: SystemMatrix, blocks: np.ndarray, filt: Filter) -> np.ndarray:
@@ -373,6 +414,8 @@ class _FusedHierarchy:
         self.tptr = np.concatenate(tp) if tp else np.zeros(1, dtype=np.int64)
         self.tidx = np.concatenate(ti) if ti else np.zeros(0, dtype=np.int32)
         self.tval = np.concatenate(tv) if tv else np.zeros(0)
+        self._gal = [_galerkin_entries(systems[l], systems[l + 1], self._uidx[l], self._uidx[l + 1], P)
+                     for l, P in enumerate(prolongations)]
         self.dinv = np.zeros((int(self.voff[-1]), 3, 3), dtype=f)
         self.wb = np.zeros(3 * int(self.voff[-1]))
         self.wx = np.zeros(3 * int(self.voff[-1]))
@@ -414,12 +457,14 @@ class _FusedHierarchy:
         if L == 0:
             mg._A = [_csr_from_blocks(fine, _filtered_blocks(fine, fine.blocks, filt))]
             return
-        prev = fine.blocks
+        from . import _fused
+
         for l in range(1, L + 1):
-            sm = systems[l]
-            sm.reset()
-            T = mg.levels[l - 1].T
-            accumulate_product(T, prev.reshape(-1, 9), sm.blocks.reshape(-1, 9))
+            v0, v1, v2 = self.voff[l - 1], self.voff[l], self.voff[l + 1]
+            u0, u1, u2 = self.uoff[l - 1], self.uoff[l], self.uoff[l + 1]
+            src_d, src_u = (self.adg, self.auv) if l == 1 else (self.dg[v0:v1], self.uv[u0:u1])
+            _fused.galerkin(src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
+                            self.uv[u1:u2].reshape(-1), *self._gal[l - 1])
             if l == 1 and len(c):
                 Tt, touched, diag = self._touched(filt)
                 S = np.broadcast_to(eye, (n0, 3, 3)).copy()
@@ -428,12 +473,13 @@ class _FusedHierarchy:
                 r, q = fine.block_rows[touched], fine.block_cols[touched]
                 delta = S[r] @ A @ S[q] - A
                 delta[diag] += eye - S[r[diag]]
-                sm.blocks.reshape(-1, 9)[...] += Tt @ delta.reshape(-1, 9)
-            prev = sm.blocks
+                corr = (Tt @ delta.reshape(-1, 9)).reshape(-1, 3, 3)
+                nd = v2 - v1
+                self.dg[v1:v2] += corr[:nd]
+                self.uv[u1:u2] += corr[nd:]
             if l < L:
-                self._pack(l, sm)
-                self.dinv[self.voff[l]:self.voff[l + 1]] = inv3(sm.blocks[sm.diag_index])
-        mg._A = [None] * L + [systems[L].finalize()]
+                self.dinv[v1:v2] = inv3(self.dg[v1:v2])
+        mg._A = [None] * (L + 1)
 
     def _touched(self, filt: Filter):
         """Fine blocks touching a constrained vertex, and the Galerkin map's columns for them (cached)."""
@@ -444,10 +490,25 @@ class _FusedHierarchy:
             con[self.clist] = True
             touched = np.flatnonzero(con[fine.block_rows] | con[fine.block_cols])
             diag = fine.block_rows[touched] == fine.block_cols[touched]
-            Tt = sp.csr_array(self.mg.levels[0].T[:, touched])
+            sm1 = self.mg.levels[0].system
+            rows = np.concatenate([sm1.diag_index, self._uidx[1]])    # level 1's stored blocks, packed order
+            Tt = sp.csr_array(self.mg.levels[0].T[rows][:, touched])
             self._touch = (Tt, touched, diag)
             self._touch_key = key
         return self._touch
+
+    def coarse_dense(self) -> np.ndarray:
+        """The coarsest level's matrix as a dense array, from its packed blocks."""
+        L = len(self.mg.levels)
+        v0, v1, u0, u1 = self.voff[L], self.voff[L + 1], self.uoff[L], self.uoff[L + 1]
+        m = int(v1 - v0)
+        C = np.zeros((m, 3, m, 3))
+        i = np.arange(m)
+        C[i, :, i, :] = self.dg[v0:v1]
+        I, J, U = self.uI[u0:u1], self.uJ[u0:u1], self.uv[u0:u1]
+        C[I, :, J, :] = U
+        C[J, :, I, :] = U.transpose(0, 2, 1)
+        return C.reshape(3 * m, 3 * m).astype(float)
 
     def _coarse(self):
         """The coarsest level's solve for the kernels: (upper Cholesky factor, True) or (dense inverse, False)."""
