@@ -8,8 +8,11 @@ For every size and preconditioner the cloth is first run ``--warmup`` steps
 (multigrid, tolerance 1e-8, the same state for every preconditioner), then
 ``--steps`` steps are timed one by one (medians reported). Per step: ms split
 into assembly / preconditioner setup / solve / collision / rest, CG iterations,
-and the ratio of the step to one SpMV of the same matrix (timed in the same
-run). On the first timed step (the same state for every preconditioner) and,
+and the ratio of the step to one SpMV of the same matrix (scipy's CSR product).
+That ratio is taken in thread CPU time, with the SpMV timed five times right
+after every step (interleaved, so both see the same machine state: on a shared
+machine wall times drift by 2-3x within a run); the ms columns are wall time.
+On the first timed step (the same state for every preconditioner) and,
 up to ``--direct-max``, on more of them, the system is also solved directly
 (SuperLU on the free coordinates) and the **true relative error of dv** is
 measured. The growth exponent of ms/step against vertex count is fitted by
@@ -77,19 +80,28 @@ def time_steps(n: int, k: float, preconditioner: str, state: ic.simulator.State,
     extra = np.linspace(0, steps - 1, error_samples).round().astype(int)[1:] if error_samples > 1 else []
     sample_at = set(int(s) for s in extra if s > 0)
     rows, errors = [], []
+    A = sim.model.system.csr
+    xr = np.random.default_rng(0).standard_normal(A.shape[0])
+    spmv_cpu = []
     for s in range(steps):
         ref = ref0 if s == 0 else (_direct_dv(sim) if s in sample_at else None)
         v0 = sim.velocities.copy()
+        c0 = time.thread_time()
         t0 = time.perf_counter()
         sim.step(1)
         wall = time.perf_counter() - t0
+        cpu = time.thread_time() - c0
+        for _ in range(5):            # the SpMV reference, interleaved with the steps (same machine state)
+            c1 = time.thread_time()
+            A @ xr
+            spmv_cpu.append(time.thread_time() - c1)
         st = sim.last_step
         col = float(getattr(st, "t_collision", 0.0) or 0.0)   # 0 until the engine has a collision stage
-        rows.append((wall, st.t_assembly, st.t_setup, st.t_solve, st.iterations, st.converged, col))
+        rows.append((wall, st.t_assembly, st.t_setup, st.t_solve, st.iterations, st.converged, col, cpu))
         if ref is not None:
             dv = (sim.velocities - v0).ravel()
             errors.append(float(np.linalg.norm(dv - ref) / np.linalg.norm(ref)))
-    spmv = spmv_seconds(sim.model.system.csr)
+    spmv = statistics.median(spmv_cpu)
     med = lambda i: statistics.median(r[i] for r in rows)  # noqa: E731
     ms = 1e3 * med(0)
     return {
@@ -100,7 +112,8 @@ def time_steps(n: int, k: float, preconditioner: str, state: ic.simulator.State,
         "ms_rest": 1e3 * statistics.median(r[0] - r[1] - r[2] - r[3] - r[6] for r in rows),
         "iterations_median": med(4), "iterations_max": max(r[4] for r in rows),
         "unconverged_steps": sum(not r[5] for r in rows),
-        "ms_spmv": 1e3 * spmv, "step_in_spmvs": ms / (1e3 * spmv),
+        "ms_step_cpu": 1e3 * med(7), "ms_spmv": 1e3 * spmv, "ms_spmv_wall": 1e3 * spmv_seconds(A),
+        "step_in_spmvs": med(7) / spmv,
         "true_error_max": max(errors) if errors else None,
         "true_error_median": statistics.median(errors) if errors else None,
         "error_samples": len(errors),
@@ -179,7 +192,7 @@ def markdown(res: dict) -> str:
             exp = res["exponents"].get(f"{key}@{k:g}")
             out += [f"### k = {k:g} N/m, {pc} ({acc})" + (f" (ms/step ~ N^{exp:.2f})" if exp is not None else ""), "",
                     "| grid | vertices | ms/step | assembly | setup | solve | collision | rest | CG its (med/max) "
-                    "| true error of dv (max) | step / SpMV |",
+                    "| true error of dv (max) | step / SpMV (CPU time) |",
                     "|---|---|---|---|---|---|---|---|---|---|---|"]
             for r in rows:
                 err = f"{r['true_error_max']:.1e}" if r["true_error_max"] is not None else "-"
