@@ -40,8 +40,9 @@ Usage::
     python benchmarks/stopping_rule.py --save-records /tmp/rec.pkl
     python benchmarks/stopping_rule.py --from-records /tmp/rec.pkl
 
-Writes ``OUT/stopping_rule.json`` and ``OUT/stopping_rule.md`` (``OUT/stopping_rule_from_records.*``
-with ``--from-records``).
+Writes ``OUT/stopping_rule.json``, ``OUT/stopping_rule.md`` and ``OUT/stopping_rule.png`` (the
+distribution of true error / tol per rule and tolerance; ``OUT/stopping_rule_from_records.*`` with
+``--from-records``).
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from _common import ROOT, hanging_stiff, ic, machine, progress, write_outputs
+from _common import ROOT, hanging_stiff, ic, machine, progress, save_png, write_outputs
 
 from implicit_cloth.integrators import base
 from implicit_cloth.solvers import pcg as pcg_mod
@@ -271,6 +272,33 @@ def markdown(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def plot(res: dict, path: Path) -> None:
+    """Per tolerance: the distribution (empirical CDF over all systems) of true error / tol at the stop, per rule."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for rs in res["rows"].values() for r in rs]
+    fig, axes = plt.subplots(1, len(TOLS), figsize=(4.2 * len(TOLS), 3.6), sharey=True)
+    for ax, t in zip(axes, TOLS):
+        for rule, col in (("old", "tab:red"), ("new", "tab:blue"), ("ideal", "0.5")):
+            e = np.sort([r[f"{rule}@{t:g}"]["err"] / t for r in rows])
+            its = sum(r[f"{rule}@{t:g}"]["it"] for r in rows) / sum(r[f"ideal@{t:g}"]["it"] for r in rows)
+            ax.step(e, np.arange(1, len(e) + 1) / len(e), where="post", color=col,
+                    label=f"{rule} ({its:.2f}x ideal iterations)")
+        ax.axvline(1.0, color="k", lw=0.8, ls=":")
+        ax.set_xscale("log")
+        ax.set_xlim(5e-3, 3)
+        ax.set_title(f"tol = {t:g}")
+        ax.set_xlabel("true error of dv / tol at the stop")
+        ax.legend(fontsize=7, loc="upper left")
+    axes[0].set_ylabel(f"fraction of the {len(rows)} systems")
+    fig.tight_layout()
+    save_png(fig, path)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128])
@@ -302,6 +330,7 @@ def main(argv: list[str] | None = None) -> int:
         res["from_records"] = str(a.from_records)
         res["pooled"] = pooled(res)
         write_outputs(a.out, "stopping_rule_from_records", res, markdown(res))
+        plot(res, a.out / "stopping_rule_from_records.png")
         print(markdown(res))
         return 0
     scenes = [(f"hanging k={k:g} {n}²", hanging_stiff(n, k), 1 / 60) for k in a.stiffness for n in a.sizes]
@@ -324,6 +353,7 @@ def main(argv: list[str] | None = None) -> int:
         a.save_records.parent.mkdir(parents=True, exist_ok=True)
         a.save_records.write_bytes(pickle.dumps(RECORDS))
     write_outputs(a.out, "stopping_rule", res, markdown(res))
+    plot(res, a.out / "stopping_rule.png")
     print(markdown(res))
     return 0
 
