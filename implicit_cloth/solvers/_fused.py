@@ -387,47 +387,50 @@ def pcg(adg, auI, auJ, auv, dg, uI, uJ, uv, voff, uoff, clist, Sc, dinv,
 
 
 @njit(cache=True, fastmath={"contract"})
-def galerkin(sd, su, od, ou, d_src, d_dst, d_w, d_todiag, u_src, u_dst, u_w, u_mode):
+def galerkin(sd, su, od, ou, d_ptr, d_dst, d_w, u_ptr, u_dst, u_w):
     """Galerkin product ``P^T A P`` of a symmetric block matrix in the storage of :func:`_symmv`,
     for a prolongation ``P kron I3``, written into the coarse level's diagonal (``od``) and upper (``ou``) blocks.
 
     All block arrays are flat (9 numbers a block, row-major). ``sd``, ``su``: the fine level's diagonal and
-    upper blocks. Each entry of the precomputed lists adds ``w = P[i, I] P[j, J]`` times a fine block to
-    one coarse block (one entry per pair of prolongation entries):
+    upper blocks. Fine block ``s`` adds ``w = P[i, I] P[j, J]`` times itself to one coarse block per entry
+    ``e`` in ``ptr[s]:ptr[s+1]`` (one entry per pair of prolongation entries), the coarse block and the way
+    packed in ``dst[e] = 4 t + mode``:
 
-    * ``d_*``: from diagonal block ``src`` to ``od[dst]`` (``d_todiag``) or ``ou[dst]``;
-    * ``u_*``: from upper block ``B = su[src]`` (fine blocks ``(i, j)`` and ``(j, i) = B^T``) with
-      ``u_mode`` 0: ``ou[dst] += w B`` (``I < J``), 1: ``ou[dst] += w B^T`` (``I > J``: the stored coarse
-      block is ``(J, I)``), 2: ``od[dst] += w (B + B^T)`` (``I = J``).
+    * diagonal fine blocks (``d_*``), mode 0: ``ou[t] += w B``; mode 3: ``od[t] += w B``;
+    * upper fine blocks ``B`` (fine blocks ``(i, j)`` and ``(j, i) = B^T``; ``u_*``), mode 0:
+      ``ou[t] += w B`` (``I < J``); 1: ``ou[t] += w B^T`` (``I > J``: the stored coarse block is ``(J, I)``);
+      2: ``od[t] += w (B + B^T)`` (``I = J``).
     """
     od[:] = 0.0
     ou[:] = 0.0
-    for e in range(len(d_src)):
-        s = 9 * d_src[e]
-        t = 9 * d_dst[e]
-        w = d_w[e]
-        if d_todiag[e]:
-            for k in range(9):
-                od[t + k] += w * sd[s + k]
-        else:
-            for k in range(9):
-                ou[t + k] += w * sd[s + k]
-    for e in range(len(u_src)):
-        s = 9 * u_src[e]
-        t = 9 * u_dst[e]
-        w = u_w[e]
-        m = u_mode[e]
-        if m == 0:
-            for k in range(9):
-                ou[t + k] += w * su[s + k]
-        elif m == 1:
-            for a in range(3):
-                for b in range(3):
-                    ou[t + 3 * a + b] += w * su[s + 3 * b + a]
-        else:
-            for a in range(3):
-                for b in range(3):
-                    od[t + 3 * a + b] += w * (su[s + 3 * a + b] + su[s + 3 * b + a])
+    for s in range(len(d_ptr) - 1):
+        o = 9 * s
+        for e in range(d_ptr[s], d_ptr[s + 1]):
+            t = 9 * (d_dst[e] >> 2)
+            w = d_w[e]
+            if d_dst[e] & 3 == 3:
+                for k in range(9):
+                    od[t + k] += w * sd[o + k]
+            else:
+                for k in range(9):
+                    ou[t + k] += w * sd[o + k]
+    for s in range(len(u_ptr) - 1):
+        o = 9 * s
+        for e in range(u_ptr[s], u_ptr[s + 1]):
+            t = 9 * (u_dst[e] >> 2)
+            w = u_w[e]
+            m = u_dst[e] & 3
+            if m == 0:
+                for k in range(9):
+                    ou[t + k] += w * su[o + k]
+            elif m == 1:
+                for a in range(3):
+                    for b in range(3):
+                        ou[t + 3 * a + b] += w * su[o + 3 * b + a]
+            else:
+                for a in range(3):
+                    for b in range(3):
+                        od[t + 3 * a + b] += w * (su[o + 3 * a + b] + su[o + 3 * b + a])
 
 
 @njit(cache=True)
@@ -453,3 +456,37 @@ def error_estimate(ad, pw, it, dd, d):
     tail = recent * qh / (1.0 - qh)
     e2_now = pmax * tail * (1.0 + q) / (1.0 - q)
     return 2.0 * np.sqrt(e2_now / max(dd, 1e-300))             # pcg.ESTIMATE_SAFETY (a test checks they agree)
+
+
+@njit(cache=True)
+def gather_blocks(src, idx, out):
+    """``out[k] = src[idx[k]]`` for flat arrays of 3x3 blocks (9 numbers each)."""
+    for k in range(len(idx)):
+        s = 9 * idx[k]
+        t = 9 * k
+        for m in range(9):
+            out[t + m] = src[s + m]
+
+
+@njit(cache=True, error_model="numpy")
+def inv3(B, out):
+    """Inverses of flat 3x3 blocks by the adjugate, as :func:`implicit_cloth.solvers.blocks.inv3` (a singular
+    block gives inf/nan, which the solve then reports, rather than an exception)."""
+    for k in range(len(B) // 9):
+        o = 9 * k
+        a, b, c = B[o], B[o + 1], B[o + 2]
+        d, e, f = B[o + 3], B[o + 4], B[o + 5]
+        g, h, i = B[o + 6], B[o + 7], B[o + 8]
+        c00 = e * i - f * h
+        c10 = f * g - d * i
+        c20 = d * h - e * g
+        det = a * c00 + b * c10 + c * c20
+        out[o] = c00 / det
+        out[o + 1] = (c * h - b * i) / det
+        out[o + 2] = (b * f - c * e) / det
+        out[o + 3] = c10 / det
+        out[o + 4] = (a * i - c * g) / det
+        out[o + 5] = (c * d - a * f) / det
+        out[o + 6] = c20 / det
+        out[o + 7] = (b * g - a * h) / det
+        out[o + 8] = (a * e - b * d) / det

@@ -298,7 +298,7 @@ def _galerkin_entries(fine: SystemMatrix, coarse: SystemMatrix, fine_up: np.ndar
     src, I, J, w = src[keep], I[keep], J[keep], w[keep]
     todiag = I == J
     dst = np.where(todiag, I, upos[coarse.block_index(I, J)] if len(I) else I)
-    d = (src.astype(np.int64), dst.astype(np.int64), w, todiag)
+    d = _packed_entries(src, fine.n, 4 * dst + 3 * todiag, w)
     # upper blocks (i, j), i < j
     src, I, J, w = expand(fine.block_rows[fine_up], fine.block_cols[fine_up])
     mode = np.where(I < J, 0, np.where(I > J, 1, 2))
@@ -307,9 +307,17 @@ def _galerkin_entries(fine: SystemMatrix, coarse: SystemMatrix, fine_up: np.ndar
     dst = lo.copy()
     if off.any():
         dst[off] = upos[coarse.block_index(lo[off], hi[off])]
-    u = (src.astype(np.int64), dst.astype(np.int64), w, mode.astype(np.int64))
-    assert (d[1] >= 0).all() and (u[1] >= 0).all()
+    u = _packed_entries(src, len(fine_up), 4 * dst + mode, w)
     return d + u
+
+
+def _packed_entries(src: np.ndarray, n_src: int, code: np.ndarray, w: np.ndarray) -> tuple:
+    """Entries sorted by source block: (pointer per source, packed destination ``4 t + mode``, weight)."""
+    if len(code) and (code.min() < 0 or code.max() >= 2**31):
+        raise ValueError("Galerkin entry outside the coarse pattern")   # a bug, not a user error
+    order = np.argsort(src, kind="stable")
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=n_src))]).astype(np.int64)
+    return ptr, code[order].astype(np.int32), np.ascontiguousarray(w[order], dtype=float)
 
 
 def _filtered_blocks(sm: SystemMatrix, blocks: np.ndarray, filt: Filter) -> np.ndarray:
@@ -442,23 +450,23 @@ class _FusedHierarchy:
         L = len(mg.levels)
         self.filt = filt
         self._filter_arrays(filt)
-        np.take(fine.blocks, fine.diag_index, axis=0, out=self.adg)
-        np.take(fine.blocks, self._uidx[0], axis=0, out=self.auv)
+        from . import _fused
+
+        flat = fine.blocks.reshape(-1)
+        _fused.gather_blocks(flat, fine.diag_index, self.adg.reshape(-1))
+        _fused.gather_blocks(flat, self._uidx[0], self.auv.reshape(-1))
         if self.precond_dtype != np.float64:
             self._pack(0, fine)                  # the V-cycle's float32 copy
         self.version = fine.version
         c, Sc = self.clist, self.Sc
         eye = np.eye(3)
-        D = self.adg.copy()
-        if len(c):
-            D[c] = Sc @ D[c] @ Sc + (eye - Sc)
         n0 = fine.n
-        self.dinv[:n0] = inv3(D)
+        _fused.inv3(self.adg.reshape(-1), self.dinv[:n0].reshape(-1))
+        if len(c):                               # constrained vertices: S D S + (I - S)
+            self.dinv[c] = inv3(Sc @ self.adg[c] @ Sc + (eye - Sc))
         if L == 0:
             mg._A = [_csr_from_blocks(fine, _filtered_blocks(fine, fine.blocks, filt))]
             return
-        from . import _fused
-
         for l in range(1, L + 1):
             v0, v1, v2 = self.voff[l - 1], self.voff[l], self.voff[l + 1]
             u0, u1, u2 = self.uoff[l - 1], self.uoff[l], self.uoff[l + 1]
@@ -478,7 +486,7 @@ class _FusedHierarchy:
                 self.dg[v1:v2] += corr[:nd]
                 self.uv[u1:u2] += corr[nd:]
             if l < L:
-                self.dinv[v1:v2] = inv3(self.dg[v1:v2])
+                _fused.inv3(self.dg[v1:v2].reshape(-1), self.dinv[v1:v2].reshape(-1))
         mg._A = [None] * (L + 1)
 
     def _touched(self, filt: Filter):
