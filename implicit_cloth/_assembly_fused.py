@@ -7,7 +7,7 @@
   arrays and needs no 9 n_blocks permutation index (numpy's reference is
   ``np.take`` through that index).
 * :func:`reset_diagonal` zeroes every block and writes ``d_i I`` on the diagonal
-  blocks (the mass matrix) in one pass.
+  blocks (the mass matrix) in one pass; :func:`add_diagonal` adds ``d_i I``.
 
 Same values as the numpy path (copies, no arithmetic). Single-threaded,
 compiled with ``cache=True``. Importing this module imports numba.
@@ -43,3 +43,13 @@ def reset_diagonal(blocks, diag_index, diag):
         blocks[b, 0, 0] = diag[i]
         blocks[b, 1, 1] = diag[i]
         blocks[b, 2, 2] = diag[i]
+
+
+@njit(cache=True)
+def add_diagonal(blocks, diag_index, diag):
+    """``blocks[diag_index[i]] += diag[i] I`` for every vertex i."""
+    for i in range(diag_index.shape[0]):
+        b = diag_index[i]
+        blocks[b, 0, 0] += diag[i]
+        blocks[b, 1, 1] += diag[i]
+        blocks[b, 2, 2] += diag[i]

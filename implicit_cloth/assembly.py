@@ -14,8 +14,8 @@ the values:
    conversion, no Python loop over springs).
 
 With the numba accelerator (:func:`implicit_cloth.solvers.accel.resolve`,
-chosen when the matrix is built) :meth:`~SystemMatrix.reset_diagonal` and
-:meth:`~SystemMatrix.finalize` are compiled passes
+chosen when the matrix is built) :meth:`~SystemMatrix.reset_diagonal`,
+:meth:`~SystemMatrix.add_diagonal` and :meth:`~SystemMatrix.finalize` are compiled passes
 (:mod:`implicit_cloth._assembly_fused`); numpy is the reference and fallback.
 
 CSR rather than BSR: scipy's CSR mat-vec was measured 5-10 % faster here.
@@ -135,6 +135,19 @@ class SystemMatrix:
         self.blocks.fill(0.0)
         for a in range(3):
             self.blocks[self.diag_index, a, a] = d
+
+    def add_diagonal(self, d: np.ndarray) -> None:
+        """Add ``d[i] I`` to diagonal block i (e.g. ``c_v c A_i`` of linear drag), ``d`` of shape (N,)."""
+        d = np.ascontiguousarray(d, dtype=float)
+        if d.shape != (self.n,):
+            raise ValueError(f"add_diagonal: expected {self.n} diagonal values, got shape {d.shape}")
+        if self.accelerator == "numba":
+            from ._assembly_fused import add_diagonal
+
+            add_diagonal(self.blocks, self.diag_index, d)
+            return
+        for a in range(3):
+            self.blocks[self.diag_index, a, a] += d
 
     def finalize(self) -> sp.csr_array:
         """Copy the block values into the CSR matrix and return it (same object every step).

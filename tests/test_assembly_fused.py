@@ -168,7 +168,7 @@ def test_assembled_jacobians_match_central_differences_on_each_path(path):
     assert np.abs(dFdv - fd).max() <= 1e-6 * np.abs(fd).max()
 
 
-def test_finalize_and_reset_diagonal_agree_on_both_paths():
+def test_finalize_reset_and_add_diagonal_agree_on_both_paths():
     rng = np.random.default_rng(2)
     pairs = np.array([[0, 3], [1, 2], [3, 0], [2, 4], [4, 4], [1, 4]])
     sms = {p: SystemMatrix(5, pairs, accelerator=p) for p in PATHS}
@@ -191,8 +191,16 @@ def test_finalize_and_reset_diagonal_agree_on_both_paths():
     for b, (i, j) in enumerate(zip(sm.block_rows, sm.block_cols)):
         dense[3 * i:3 * i + 3, 3 * j:3 * j + 3] = vals[b]
     assert np.array_equal(out["numba"], dense) and np.array_equal(out["numpy"], dense)
+    for p, sm in sms.items():
+        sm.blocks[:] = vals
+        sm.add_diagonal(d)
+        expect = vals.copy()
+        expect[sm.diag_index] += d[:, None, None] * np.eye(3)
+        assert np.array_equal(sm.blocks, expect), p
     with pytest.raises(ValueError, match="expected 5 diagonal values"):
         sm.reset_diagonal(np.ones(4))
+    with pytest.raises(ValueError, match="expected 5 diagonal values"):
+        sm.add_diagonal(np.ones(6))
 
 
 def test_numba_assembly_is_symmetric_exactly():
