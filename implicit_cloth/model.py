@@ -202,11 +202,7 @@ class Model:
             ``(dF/dx) w`` if ``w`` is given.
         """
         sysm = self.system
-        sysm.reset()
-        blk = sysm.blocks
-        d = sysm.diag_index
-        for a in range(3):
-            blk[d, a, a] = self.masses
+        sysm.reset_diagonal(self.masses)
         kw = np.zeros_like(x) if w is not None else None
         f = np.zeros_like(x)
         for e in self.effects:

@@ -22,7 +22,6 @@ class Drag:
         self.c = float(c)
         self.wind = wind
         self._cA = (self.c * areas)[:, None]      # N*s/m per vertex
-        self._diag: np.ndarray | None = None
 
     def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
         rel = v if self.wind is None else v - self.wind.velocity(x, t)
@@ -35,15 +34,12 @@ class Drag:
         return np.zeros((0, 2), dtype=np.int64)
 
     def bind(self, system: Any) -> None:
-        self._diag = system.diag_index
+        pass   # diagonal blocks only: SystemMatrix.add_diagonal knows where they are
 
     def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
         # -(c_v dF/dv) = +c_v c A_i I on each diagonal block
         self.force(x, v, t, f)
-        d = c_v * self._cA[:, 0]
-        blk = system.blocks
-        for a in range(3):
-            blk[self._diag, a, a] += d
+        system.add_diagonal(c_v * self._cA[:, 0])
 
 
 def build(model: Any, c: float, wind: dict | None) -> Drag:

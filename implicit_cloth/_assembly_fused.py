@@ -1,0 +1,55 @@
+"""Compiled (numba) passes of :class:`implicit_cloth.assembly.SystemMatrix`: the optional accelerator.
+
+* :func:`blocks_to_csr` is :meth:`SystemMatrix.finalize`'s copy of the
+  (n_blocks, 3, 3) block values into the CSR value array, written as the block
+  transpose it is (scalar row ``3 r + a`` of block row ``r`` holds the ``a``-th
+  row of each of its blocks, in column order), so it streams through both
+  arrays and needs no 9 n_blocks permutation index (numpy's reference is
+  ``np.take`` through that index).
+* :func:`reset_diagonal` zeroes every block and writes ``d_i I`` on the diagonal
+  blocks (the mass matrix) in one pass; :func:`add_diagonal` adds ``d_i I``.
+
+Same values as the numpy path (copies, no arithmetic). Single-threaded,
+compiled with ``cache=True``. Importing this module imports numba.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+
+@njit(cache=True)
+def blocks_to_csr(bptr, blocks, data):
+    """``data[...] = blocks`` in CSR order (see the module docstring); ``bptr`` are the block-row pointers."""
+    for r in range(bptr.shape[0] - 1):
+        b0 = bptr[r]
+        kr = bptr[r + 1] - b0
+        base = 9 * b0
+        for a in range(3):
+            p = base + 3 * kr * a
+            for m in range(kr):
+                data[p] = blocks[b0 + m, a, 0]
+                data[p + 1] = blocks[b0 + m, a, 1]
+                data[p + 2] = blocks[b0 + m, a, 2]
+                p += 3
+
+
+@njit(cache=True)
+def reset_diagonal(blocks, diag_index, diag):
+    """``blocks[:] = 0`` then ``blocks[diag_index[i]] = diag[i] I`` for every vertex i."""
+    blocks[:] = 0.0
+    for i in range(diag_index.shape[0]):
+        b = diag_index[i]
+        blocks[b, 0, 0] = diag[i]
+        blocks[b, 1, 1] = diag[i]
+        blocks[b, 2, 2] = diag[i]
+
+
+@njit(cache=True)
+def add_diagonal(blocks, diag_index, diag):
+    """``blocks[diag_index[i]] += diag[i] I`` for every vertex i."""
+    for i in range(diag_index.shape[0]):
+        b = diag_index[i]
+        blocks[b, 0, 0] += diag[i]
+        blocks[b, 1, 1] += diag[i]
+        blocks[b, 2, 2] += diag[i]

@@ -1,0 +1,144 @@
+"""Compiled (numba) spring assembly: :meth:`Springs.linearize` in one pass over the springs.
+
+The optional accelerator of :mod:`implicit_cloth.effects.springs` (numpy stays
+the reference and the fallback; :func:`implicit_cloth.solvers.accel.resolve`
+chooses at bind time). Same equations and the same arithmetic as the numpy
+path, fused per spring ``s = (i, j)`` (notation of Baraff & Witkin 1998, §4):
+
+* frame: ``d = x_j - x_i``, ``l = |d|``, ``u = d / l`` (``u = 0`` when
+  ``l <= tiny``, the zero-length guard);
+* clamped transverse coefficient ``a = max(1 - L0 / l, 0)`` (``a = 0`` for a
+  zero-length spring of positive rest length, 1 for ``L0 = 0``);
+* force on i ``f_s = k (d - L0 u) + kd ((v_j - v_i) . u) u`` (N), added to
+  ``f_i`` and subtracted from ``f_j``;
+* ``(dF/dx) w``: ``k a (w_j - w_i) + k (1 - a) (u . (w_j - w_i)) u`` added to
+  ``kw_i``, subtracted from ``kw_j``;
+* system block ``C = alpha I + beta u u^T`` with ``alpha = c_x k a`` and
+  ``beta = c_x k (1 - a) + c_v kd``, added to blocks (i, i), (j, j) and
+  subtracted from (i, j), (j, i) through block indices precomputed at bind time.
+  ``C`` is written exactly symmetric (``C_ab = beta u_a u_b`` computed once for
+  ``a <= b``); numpy's ``(beta u_a) u_b`` and ``(beta u_b) u_a`` may differ in the
+  last bit, which is the only difference besides the order of the sums (the
+  springs are visited sorted by vertex, for cache locality).
+
+Single-threaded (a scatter with two threads would race on shared vertices, and
+the test machine has two shared cores). Compiled with ``cache=True``: the
+compilation is paid once per installation. Importing this module imports numba.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+
+@njit(cache=True, inline="always")
+def _add_sym(B, b, sign, c00, c01, c02, c11, c12, c22):
+    """``B[9 b : 9 b + 9] += sign * C`` for the symmetric 3x3 ``C`` given by its upper triangle."""
+    p = 9 * b
+    B[p] += sign * c00
+    B[p + 1] += sign * c01
+    B[p + 2] += sign * c02
+    B[p + 3] += sign * c01
+    B[p + 4] += sign * c11
+    B[p + 5] += sign * c12
+    B[p + 6] += sign * c02
+    B[p + 7] += sign * c12
+    B[p + 8] += sign * c22
+
+
+@njit(cache=True)
+def springs_linearize(x, v, w, with_w, damped, si, sj, k, kd, L0, tiny, c_x, c_v, bidx, blocks, kw, f):
+    """One pass over the springs: force into ``f``, ``(dF/dx) w`` into ``kw``, blocks into ``blocks``.
+
+    Parameters
+    ----------
+    x, v, w : (N, 3) float arrays
+        Positions (m), velocities (m/s), the vector multiplied by ``dF/dx``.
+    with_w : bool
+        Whether to compute ``kw`` (``w`` and ``kw`` are ignored otherwise).
+    damped : bool
+        Whether any spring has damping (the numpy path skips the term then).
+    si, sj : (S,) int arrays
+        The spring's vertices.
+    k, kd, L0 : (S,) float arrays
+        Stiffness N/m, damping N*s/m, rest length m.
+    tiny : float
+        Length below which a spring has no direction, m.
+    c_x, c_v : float
+        Coefficients of ``dF/dx`` (s^2) and ``dF/dv`` (s) in the system.
+    bidx : (S, 4) int array
+        Block positions of (i, i), (j, j), (i, j), (j, i) in ``blocks``.
+    blocks : (n_blocks, 3, 3) float array
+        System blocks, accumulated into.
+    kw, f : (N, 3) float arrays
+        Accumulated into.
+    """
+    B = blocks.reshape(-1)
+    for s in range(si.shape[0]):
+        i = si[s]
+        j = sj[s]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        l = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        ks = k[s]
+        L = L0[s]
+        if l > tiny:
+            inv = 1.0 / l
+            a = 1.0 - L * inv
+        else:
+            inv = 0.0
+            a = 0.0 if L > 0.0 else 1.0
+        if a < 0.0:
+            a = 0.0
+        u0 = d0 * inv
+        u1 = d1 * inv
+        u2 = d2 * inv
+        # force on i: k (d - L0 u) + kd ((v_j - v_i) . u) u
+        f0 = ks * (d0 - L * u0)
+        f1 = ks * (d1 - L * u1)
+        f2 = ks * (d2 - L * u2)
+        if damped:
+            g = kd[s] * ((v[j, 0] - v[i, 0]) * u0 + (v[j, 1] - v[i, 1]) * u1 + (v[j, 2] - v[i, 2]) * u2)
+            f0 += g * u0
+            f1 += g * u1
+            f2 += g * u2
+        f[i, 0] += f0
+        f[i, 1] += f1
+        f[i, 2] += f2
+        f[j, 0] -= f0
+        f[j, 1] -= f1
+        f[j, 2] -= f2
+        # (dF/dx) w
+        if with_w:
+            w0 = w[j, 0] - w[i, 0]
+            w1 = w[j, 1] - w[i, 1]
+            w2 = w[j, 2] - w[i, 2]
+            ka = ks * a
+            kb = ks * (1.0 - a) * (u0 * w0 + u1 * w1 + u2 * w2)
+            q0 = ka * w0 + kb * u0
+            q1 = ka * w1 + kb * u1
+            q2 = ka * w2 + kb * u2
+            kw[i, 0] += q0
+            kw[i, 1] += q1
+            kw[i, 2] += q2
+            kw[j, 0] -= q0
+            kw[j, 1] -= q1
+            kw[j, 2] -= q2
+        # C = alpha I + beta u u^T (exactly symmetric): + on (i, i), (j, j); - on (i, j), (j, i)
+        alpha = c_x * ks * a
+        beta = c_x * ks * (1.0 - a) + c_v * kd[s]
+        b0 = beta * u0
+        b1 = beta * u1
+        c00 = b0 * u0 + alpha
+        c01 = b0 * u1
+        c02 = b0 * u2
+        c11 = b1 * u1 + alpha
+        c12 = b1 * u2
+        c22 = beta * u2 * u2 + alpha
+        _add_sym(B, bidx[s, 0], 1.0, c00, c01, c02, c11, c12, c22)
+        _add_sym(B, bidx[s, 1], 1.0, c00, c01, c02, c11, c12, c22)
+        _add_sym(B, bidx[s, 2], -1.0, c00, c01, c02, c11, c12, c22)
+        _add_sym(B, bidx[s, 3], -1.0, c00, c01, c02, c11, c12, c22)

@@ -1,0 +1,240 @@
+"""The compiled (numba) assembly against the numpy reference path and against finite differences.
+
+The numpy path (``Springs.linearize`` with a sparse scatter product,
+``SystemMatrix.finalize`` with ``np.take``) is the reference; the numba path
+must give the same blocks, CSR values, force and ``(dF/dx) w`` up to the
+round-off of a different summation order, on a grid and on an irregular mesh
+cloth, with compressed, stretched and zero-length springs, damping on and off.
+"""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+import implicit_cloth as ic
+from implicit_cloth import cloth
+from implicit_cloth.assembly import SystemMatrix
+from implicit_cloth.effects.springs import Springs
+from implicit_cloth.solvers import numba_available, set_default_accelerator
+
+pytestmark = pytest.mark.skipif(not numba_available(), reason="numba not installed")
+PATHS = ("numpy", "numba")
+KINDS = ("structural", "shear", "bend")
+
+
+@pytest.fixture(autouse=True)
+def _reset_accelerator():
+    yield
+    set_default_accelerator(None)
+
+
+def _springs(damping: bool) -> dict:
+    k, kd = (800.0, 90.0, 4.0), (0.3, 0.1, 0.02)
+    return {kind: {"stiffness": k[m], "damping": kd[m] if damping else 0.0} for m, kind in enumerate(KINDS)}
+
+
+def _grid_scene(damping: bool) -> dict:
+    return {"cloth": {"size": [1.0, 0.8], "resolution": [7, 6], "mass": 0.2, "plane": "xz",
+                      "pins": ["top_left", "top_right"], "springs": _springs(damping)},
+            "effects": {"gravity": [0.0, 0.0, -9.81], "drag": 0.4}}
+
+
+def _mesh_scene(tmp_path, damping: bool) -> dict:
+    """An irregular mesh cloth: a perturbed grid whose vertices are shuffled (no grid order left)."""
+    g = cloth.grid((1.0, 1.0), (6, 5), plane="xy")
+    rng = np.random.default_rng(3)
+    perm = rng.permutation(g.n_vertices)
+    inv = np.argsort(perm)
+    pos = g.positions[perm] + 0.02 * rng.standard_normal(g.positions.shape) * [1, 1, 0]
+    path = tmp_path / "shuffled.obj"
+    trimesh.Trimesh(pos, inv[g.faces], process=False).export(path)
+    return {"cloth": {"mesh": str(path), "mass": 0.3, "pins": [0, 5], "springs": _springs(damping)},
+            "effects": {"gravity": [0.0, 0.0, -9.81]}}
+
+
+def _states(model, rng):
+    """Mixed (compressed and stretched), all stretched, and one with coincident vertices (zero-length springs)."""
+    x0 = model.rest_positions
+    mixed = 0.9 * x0 + 0.05 * rng.standard_normal(x0.shape)
+    stretched = 1.2 * x0 + 0.005 * rng.standard_normal(x0.shape)
+    coincident = mixed.copy()
+    s = model.springs
+    coincident[s.j[0]] = coincident[s.i[0]]                  # a zero-length spring of positive rest length
+    coincident[s.j[-1]] = coincident[s.i[-1]] + [1e-13, 0, 0]   # below the 1e-9 x mean rest length guard
+    return {"mixed": mixed, "stretched": stretched, "coincident": coincident}
+
+
+def _assemble(scene: dict, path: str, rng_seed: int = 0):
+    set_default_accelerator(path)
+    sim = ic.Simulator(scene)
+    m = sim.model
+    assert m.system.accelerator == path and m.springs.accelerator == path
+    rng = np.random.default_rng(rng_seed)
+    out = {}
+    v = rng.standard_normal((m.n, 3))
+    w = rng.standard_normal((m.n, 3))
+    for name, x in _states(m, rng).items():
+        with np.errstate(all="raise"):
+            A, f, kw = m.linearize(x, v, 0.0, 1.3e-3, 3.7e-2, w=w)
+        out[name] = (m.system.blocks.copy(), A.data.copy(), f.copy(), kw.copy())
+    return m, out
+
+
+def _close(a, b, what):
+    scale = np.abs(a).max()
+    assert np.all(np.isfinite(b)), what
+    assert np.abs(a - b).max() <= 1e-13 * scale, f"{what}: {np.abs(a - b).max() / scale:.2e}"
+
+
+@pytest.mark.parametrize("damping", [True, False])
+@pytest.mark.parametrize("kind", ["grid", "mesh"])
+def test_numba_assembly_equals_numpy_path(tmp_path, kind, damping):
+    scene = _grid_scene(damping) if kind == "grid" else _mesh_scene(tmp_path, damping)
+    m0, ref = _assemble(scene, "numpy")
+    m1, got = _assemble(scene, "numba")
+    s = m1.springs
+    assert s._damped is damping
+    assert len(m0.system.csr.data) == len(m1.system.csr.data)
+    for state in ref:
+        for what, a, b in zip(("blocks", "csr", "f", "kw"), ref[state], got[state]):
+            _close(a, b, f"{kind} {state} {what}")
+    # the states did exercise both signs of strain and the zero-length guard
+    x = _states(m1, np.random.default_rng(0))
+    strain = s.lengths(x["mixed"]) / s.L0 - 1
+    assert strain.min() < -0.05 and strain.max() > 0.05
+    assert s.lengths(x["coincident"]).min() < s._tiny
+
+
+@pytest.mark.parametrize("L0", [0.0, 0.3])
+def test_numba_springs_with_zero_rest_length_and_coincident_vertices(L0):
+    """Springs bound to a bare SystemMatrix: L0 = 0 springs (Jacobian k I at zero length) and L0 > 0 ones (none)."""
+    pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+    k, kd = np.array([250.0, 40.0, 7.0, 90.0]), np.array([1.5, 0.0, 0.2, 0.4])
+    x = np.zeros((4, 3))
+    x[3] = [0.5, 0.1, 0.0]          # springs 0-1 and 1-2 have zero length, 2-3 and 3-0 not
+    rng = np.random.default_rng(5)
+    v, w = rng.standard_normal((2, 4, 3))
+    res = {}
+    for path in PATHS:
+        sm = SystemMatrix(4, pairs, accelerator=path)
+        s = Springs(4, pairs, k, kd, np.full(4, L0), {"structural": slice(0, 4)})
+        s.bind(sm)
+        assert s.accelerator == path
+        sm.reset_diagonal(np.full(4, 0.1))
+        f, kw = np.zeros((4, 3)), np.zeros((4, 3))
+        with np.errstate(all="raise"):
+            s.linearize(x, v, 0.0, 0.01, 0.1, w, sm, kw, f)
+        res[path] = (sm.blocks.copy(), sm.finalize().toarray(), f, kw)
+    for what, a, b in zip(("blocks", "A", "f", "kw"), res["numpy"], res["numba"]):
+        _close(a, b, what)
+    blocks = res["numba"][0]
+    off01 = blocks[SystemMatrix(4, pairs).block_index(np.array([0]), np.array([1]))[0]]
+    # the zero-length spring 0-1: -(c_x k I) if L0 = 0 (damping has no direction), else nothing
+    assert np.allclose(off01, -0.01 * 250.0 * np.eye(3) if L0 == 0.0 else np.zeros((3, 3)), rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_assembled_jacobians_match_central_differences_on_each_path(path):
+    """dF/dx and dF/dv from linearize (minus the mass) equal central differences of Model.forces (numpy code)."""
+    set_default_accelerator(path)
+    sim = ic.Simulator(_grid_scene(True))
+    m = sim.model
+    assert m.springs.accelerator == path
+    rng = np.random.default_rng(11)
+    x = 1.15 * m.rest_positions + 0.01 * rng.standard_normal((m.n, 3))
+    v = rng.standard_normal((m.n, 3))
+    M = np.diag(np.repeat(m.masses, 3))
+    A, f, _ = m.linearize(x, v, 0.0, c_x=-1.0, c_v=0.0)
+    assert np.allclose(f, m.forces(x, v, 0.0), rtol=0, atol=1e-12 * np.abs(f).max())
+    dFdx = A.toarray() - M
+    h = 1e-6
+    fd = np.zeros_like(dFdx)
+    for q in range(3 * m.n):
+        e = np.zeros(3 * m.n)
+        e[q] = h
+        e = e.reshape(-1, 3)
+        fd[:, q] = ((m.forces(x + e, 0 * v, 0.0) - m.forces(x - e, 0 * v, 0.0)) / (2 * h)).ravel()
+    assert np.abs(dFdx - fd).max() <= 1e-6 * np.abs(fd).max()
+    A, _, _ = m.linearize(x, v, 0.0, c_x=0.0, c_v=-1.0)
+    dFdv = A.toarray() - M
+    for q in range(3 * m.n):
+        e = np.zeros(3 * m.n)
+        e[q] = h
+        e = e.reshape(-1, 3)
+        fd[:, q] = ((m.forces(x, v + e, 0.0) - m.forces(x, v - e, 0.0)) / (2 * h)).ravel()
+    assert np.abs(dFdv - fd).max() <= 1e-6 * np.abs(fd).max()
+
+
+def test_finalize_reset_and_add_diagonal_agree_on_both_paths():
+    rng = np.random.default_rng(2)
+    pairs = np.array([[0, 3], [1, 2], [3, 0], [2, 4], [4, 4], [1, 4]])
+    sms = {p: SystemMatrix(5, pairs, accelerator=p) for p in PATHS}
+    vals = rng.standard_normal(sms["numpy"].blocks.shape)
+    d = rng.uniform(1, 2, 5)
+    out = {}
+    for p, sm in sms.items():
+        sm.blocks[:] = vals
+        sm.reset_diagonal(d)
+        expect = np.zeros_like(vals)
+        expect[sm.diag_index] = d[:, None, None] * np.eye(3)
+        assert np.array_equal(sm.blocks, expect)
+        sm.blocks[:] = vals
+        csr, v0 = sm.csr, sm.version
+        A = sm.finalize()
+        assert A is csr and sm.version == v0 + 1
+        out[p] = A.toarray()
+    dense = np.zeros((15, 15))
+    sm = sms["numba"]
+    for b, (i, j) in enumerate(zip(sm.block_rows, sm.block_cols)):
+        dense[3 * i:3 * i + 3, 3 * j:3 * j + 3] = vals[b]
+    assert np.array_equal(out["numba"], dense) and np.array_equal(out["numpy"], dense)
+    for p, sm in sms.items():
+        sm.blocks[:] = vals
+        sm.add_diagonal(d)
+        expect = vals.copy()
+        expect[sm.diag_index] += d[:, None, None] * np.eye(3)
+        assert np.array_equal(sm.blocks, expect), p
+    with pytest.raises(ValueError, match="expected 5 diagonal values"):
+        sm.reset_diagonal(np.ones(4))
+    with pytest.raises(ValueError, match="expected 5 diagonal values"):
+        sm.add_diagonal(np.ones(6))
+
+
+def test_numba_assembly_is_symmetric_exactly():
+    set_default_accelerator("numba")
+    sim = ic.Simulator(_grid_scene(True))
+    m = sim.model
+    x = 0.9 * m.rest_positions + 0.05 * np.random.default_rng(4).standard_normal((m.n, 3))
+    A, _, _ = m.linearize(x, np.zeros_like(x), 0.0, 1e-3, 1e-2)
+    A = A.toarray()
+    assert np.array_equal(A, A.T)
+
+
+def test_steps_agree_on_both_paths(hanging_scene):
+    """A few backward-Euler steps at a tight tolerance: the same trajectory whichever path assembles and solves."""
+    xs = {}
+    for p in PATHS:
+        set_default_accelerator(p)
+        sim = ic.Simulator(hanging_scene, solver={"tolerance": 1e-10})
+        sim.step(5)
+        xs[p] = sim.positions.copy()
+    disp = np.abs(xs["numpy"] - ic.Simulator(hanging_scene).positions).max()
+    assert disp > 1e-3
+    assert np.abs(xs["numba"] - xs["numpy"]).max() <= 1e-7 * disp
+
+
+def test_numpy_path_and_core_import_do_not_import_numba(hanging_scene):
+    code = ("import json, os, sys, implicit_cloth as ic, implicit_cloth.cli\n"
+            "first = 'numba' in sys.modules\n"
+            "sim = ic.Simulator(json.loads(sys.argv[1])); sim.step(2)\n"
+            "print(first, 'numba' in sys.modules, sim.model.springs.accelerator)\n")
+    import json
+    import os
+
+    env = dict(os.environ, IMPLICIT_CLOTH_ACCELERATOR="numpy")
+    out = subprocess.run([sys.executable, "-c", code, json.dumps(hanging_scene)], capture_output=True, text=True,
+                         check=True, env=env).stdout.split()
+    assert out == ["False", "False", "numpy"]
