@@ -106,6 +106,9 @@ def test_numba_assembly_equals_numpy_path(tmp_path, kind, damping):
     strain = s.lengths(x["mixed"]) / s.L0 - 1
     assert strain.min() < -0.05 and strain.max() > 0.05
     assert s.lengths(x["coincident"]).min() < s._tiny
+    for state in x.values():                    # compiled lengths (adaptive checks, energies) = numpy's
+        assert m0.springs.accelerator == "numpy"
+        np.testing.assert_allclose(s.lengths(state), m0.springs.lengths(state), rtol=1e-14, atol=1e-300)
 
 
 @pytest.mark.parametrize("L0", [0.0, 0.3])

@@ -142,3 +142,15 @@ def springs_linearize(x, v, w, with_w, damped, si, sj, k, kd, L0, tiny, c_x, c_v
         _add_sym(B, bidx[s, 1], 1.0, c00, c01, c02, c11, c12, c22)
         _add_sym(B, bidx[s, 2], -1.0, c00, c01, c02, c11, c12, c22)
         _add_sym(B, bidx[s, 3], -1.0, c00, c01, c02, c11, c12, c22)
+
+
+@njit(cache=True)
+def spring_lengths(x, si, sj, out):
+    """``out[s] = |x[sj[s]] - x[si[s]]|``, m (the numpy path's ``Springs.lengths``, one pass)."""
+    for s in range(len(si)):
+        i = si[s]
+        j = sj[s]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        out[s] = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
