@@ -361,3 +361,30 @@ def test_stopping_rule_is_not_needlessly_conservative():
             assert res.converged and tol / 8 < err <= tol, (steps, acc, err / tol)
             its.add(res.iterations)
         assert len(its) == 1, its
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_numba_fine_blocks_need_not_be_symmetric_themselves():
+    """The compiled path reads spring blocks from their six distinct numbers only while every fine upper block
+    is exactly symmetric; a symmetric matrix whose off-diagonal blocks are not (A_ji = A_ij^T != A_ij) falls
+    back to all nine and still solves to the tolerance."""
+    sim = ic.Simulator(_scene(res=(16, 16)), dt=H)
+    m, _, b = _system(sim, steps=3)
+    sm = m.system
+    mg = make_preconditioner("multigrid", m, "numba")
+    filt = Filter(m.n, m.pinned)
+    mg.setup(None, filt)
+    assert mg._fused.use6                        # springs: alpha I + beta u u^T, exactly symmetric
+    i, j = sm.block_rows, sm.block_cols
+    up = np.flatnonzero(i < j)[::7]              # skew some blocks, keeping the matrix symmetric
+    skew = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]) * 1e-3 * np.abs(sm.blocks).max()
+    sm.blocks[up] += skew
+    sm.blocks[sm.block_index(j[up], i[up])] += skew.T
+    A = sm.finalize()
+    assert abs(A - A.T).max() == 0.0
+    mg.setup(None, filt)
+    assert not mg._fused.use6
+    z = np.zeros_like(b)
+    dv, res = filtered_pcg(A, b, z, filt, mg, tol=1e-6)
+    ref = _direct(A, b, z, filt)
+    assert res.converged and np.linalg.norm(dv - ref) <= 1e-6 * np.linalg.norm(ref)

@@ -90,16 +90,69 @@ def _symmv(dg, uI, uJ, uv, x, y):
 
 
 @njit(cache=True, fastmath={"contract"})
-def _fsymmv(dg, uI, uJ, uv, clist, Sc, ws, x, y):
+def _symmv6(dg, uI, uJ, u6, x, y):
+    """:func:`_symmv` for upper blocks that are themselves symmetric, stored as their six distinct numbers
+    ``(B00, B01, B02, B11, B12, B22)``: a third less data again (spring blocks ``alpha I + beta u u^T``)."""
+    for i in range(len(dg)):
+        d = dg[i]
+        x0 = x[3 * i]
+        x1 = x[3 * i + 1]
+        x2 = x[3 * i + 2]
+        y[3 * i] = d[0, 0] * x0 + d[0, 1] * x1 + d[0, 2] * x2
+        y[3 * i + 1] = d[1, 0] * x0 + d[1, 1] * x1 + d[1, 2] * x2
+        y[3 * i + 2] = d[2, 0] * x0 + d[2, 1] * x1 + d[2, 2] * x2
+    for k in range(len(uI)):
+        i = uI[k]
+        j = uJ[k]
+        s = u6[k]
+        b00, b01, b02, b11, b12, b22 = s[0], s[1], s[2], s[3], s[4], s[5]
+        xj0 = x[3 * j]
+        xj1 = x[3 * j + 1]
+        xj2 = x[3 * j + 2]
+        xi0 = x[3 * i]
+        xi1 = x[3 * i + 1]
+        xi2 = x[3 * i + 2]
+        y[3 * i] += b00 * xj0 + b01 * xj1 + b02 * xj2
+        y[3 * i + 1] += b01 * xj0 + b11 * xj1 + b12 * xj2
+        y[3 * i + 2] += b02 * xj0 + b12 * xj1 + b22 * xj2
+        y[3 * j] += b00 * xi0 + b01 * xi1 + b02 * xi2
+        y[3 * j + 1] += b01 * xi0 + b11 * xi1 + b12 * xi2
+        y[3 * j + 2] += b02 * xi0 + b12 * xi1 + b22 * xi2
+
+
+@njit(cache=True)
+def gather_sym6(src, idx, out6):
+    """``out6[k]`` = the six distinct numbers of block ``src[idx[k]]`` (flat, 9 a block); returns whether
+    every gathered block is exactly symmetric (only then may :func:`_symmv6` stand in for :func:`_symmv`)."""
+    sym = True
+    for k in range(len(idx)):
+        s = 9 * idx[k]
+        out6[k, 0] = src[s]
+        out6[k, 1] = src[s + 1]
+        out6[k, 2] = src[s + 2]
+        out6[k, 3] = src[s + 4]
+        out6[k, 4] = src[s + 5]
+        out6[k, 5] = src[s + 8]
+        if src[s + 1] != src[s + 3] or src[s + 2] != src[s + 6] or src[s + 5] != src[s + 7]:
+            sym = False
+    return sym
+
+
+@njit(cache=True, fastmath={"contract"})
+def _fsymmv(dg, uI, uJ, uv, u6, use6, clist, Sc, ws, x, y):
     """``y = (S A S + I - S) x``, the filtered matrix (``x`` is filtered in place for the product and
-    restored; ``ws`` holds ``3 len(clist)`` numbers of scratch)."""
+    restored; ``ws`` holds ``3 len(clist)`` numbers of scratch); with ``use6`` the upper blocks are read
+    from their symmetric six-number copy ``u6`` (:func:`_symmv6`)."""
     nc = len(clist)
     for c in range(nc):
         i = clist[c]
         x0, x1, x2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
         ws[3 * c], ws[3 * c + 1], ws[3 * c + 2] = x0, x1, x2
         x[3 * i], x[3 * i + 1], x[3 * i + 2] = _filt3(Sc, c, x0, x1, x2)
-    _symmv(dg, uI, uJ, uv, x, y)
+    if use6:
+        _symmv6(dg, uI, uJ, u6, x, y)
+    else:
+        _symmv(dg, uI, uJ, uv, x, y)
     for c in range(nc):
         i = clist[c]
         x0, x1, x2 = ws[3 * c], ws[3 * c + 1], ws[3 * c + 2]
@@ -240,17 +293,17 @@ def _lev(l, dg, uI, uJ, uv, voff, uoff):
 
 
 @njit(cache=True, fastmath={"contract"})
-def _apply_level(l, dg, uI, uJ, uv, voff, uoff, clist, Sc, ws, x, y):
-    """``y = A_l x`` (the filtered matrix on the finest level)."""
+def _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y):
+    """``y = A_l x`` (the filtered matrix on the finest level, whose upper blocks may come from ``u6``)."""
     d, i, j, u = _lev(l, dg, uI, uJ, uv, voff, uoff)
     if l == 0:
-        _fsymmv(d, i, j, u, clist, Sc, ws, x, y)
+        _fsymmv(d, i, j, u, u6, use6, clist, Sc, ws, x, y)
     else:
         _symmv(d, i, j, u, x, y)
 
 
 @njit(cache=True, fastmath={"contract"})
-def vcycle(b, out, dg, uI, uJ, uv, voff, uoff, clist, Sc, ws, dinv,
+def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
            pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, wb, wx, wr):
     """One V-cycle of the filtered hierarchy: ``out = M^-1 b`` (``b`` the fine residual).
 
@@ -258,7 +311,7 @@ def vcycle(b, out, dg, uI, uJ, uv, voff, uoff, clist, Sc, ws, dinv,
     vertices, diagonal blocks ``dg[voff[l]:voff[l+1]]`` and upper blocks
     ``uv[uoff[l]:uoff[l+1]]`` at local block indices ``uI``, ``uJ`` (see :func:`_symmv`);
     the finest level's are unfiltered, the filter being applied on the fly
-    (:func:`_fsymmv`). Its vectors live at ``3 voff[l]`` in the work arrays ``wb``
+    (:func:`_fsymmv`), and with ``use6`` read from their six-number copy ``u6``. Its vectors live at ``3 voff[l]`` in the work arrays ``wb``
     (right-hand sides), ``wx`` (iterates) and ``wr`` (products, residuals, then smoothed
     iterates). The prolongation l -> l+1 has rows ``pptr[poff[l]:poff[l] + n_l + 1]``
     (local), entries ``pnnz[l]:pnnz[l+1]`` of ``pidx``/``pval``; its transpose likewise in
@@ -279,7 +332,7 @@ def vcycle(b, out, dg, uI, uJ, uv, voff, uoff, clist, Sc, ws, dinv,
         ti = tidx[pnnz[l]:pnnz[l + 1]]
         tv = tval[pnnz[l]:pnnz[l + 1]]
         _presmooth(d, omega, bl, x)
-        _apply_level(l, dg, uI, uJ, uv, voff, uoff, clist, Sc, ws, x, r)
+        _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, r)
         _sub(bl, r)
         _transfer(tp, ti, tv, r, wb[3 * voff[l + 1]:3 * voff[l + 2]], False)
     _coarse_solve(C, upper, wb[3 * voff[L]:3 * voff[L + 1]], wx[3 * voff[L]:3 * voff[L + 1]])
@@ -294,18 +347,18 @@ def vcycle(b, out, dg, uI, uJ, uv, voff, uoff, clist, Sc, ws, dinv,
         pi = pidx[pnnz[l]:pnnz[l + 1]]
         pv = pval[pnnz[l]:pnnz[l + 1]]
         _transfer(pp, pi, pv, xc, x, True)
-        _apply_level(l, dg, uI, uJ, uv, voff, uoff, clist, Sc, ws, x, y)
+        _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y)
         _smooth(d, omega, bl, x, y)
 
 
 @njit(cache=True, fastmath={"contract"})
-def pcg(adg, auI, auJ, auv, dg, uI, uJ, uv, voff, uoff, clist, Sc, dinv,
+def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, dinv,
         pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega,
         b, z, guess, use_guess, mass, use_mass, tol, max_iterations, bound_only, min_delay, delay_fraction):
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
 
     ``adg``, ``auI``, ``auJ``, ``auv``: the fine matrix (unfiltered, float64, symmetric storage of
-    :func:`_symmv`) that CG multiplies by; the V-cycle's packed hierarchy (:func:`vcycle`) may hold its
+    :func:`_symmv`) that CG multiplies by (its upper blocks from ``au6`` with ``use6``); the V-cycle's packed hierarchy (:func:`vcycle`) may hold its
     own (float32) copy of it as level 0.
 
     Returns ``(dv, iterations, residual, converged, error)``.
@@ -337,7 +390,7 @@ def pcg(adg, auI, auJ, auv, dg, uI, uJ, uv, voff, uoff, clist, Sc, dinv,
     if norm0 == 0.0:
         return dv, 0, 0.0, True, 0.0
     s = np.empty(N)
-    vcycle(r, s, dg, uI, uJ, uv, voff, uoff, clist, Sc, ws, dinv,
+    vcycle(r, s, dg, uI, uJ, uv, au6, use6, voff, uoff, clist, Sc, ws, dinv,
            pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, wb, wx, wr)
     filter_vec(clist, Sc, s)
     p = s.copy()
@@ -351,7 +404,7 @@ def pcg(adg, auI, auJ, auv, dg, uI, uJ, uv, voff, uoff, clist, Sc, dinv,
     it = 0
     while not converged and it < max_iterations:
         # p is filtered, so S A S p + (I - S) p = S A p: the filtered product
-        _fsymmv(adg, auI, auJ, auv, clist, Sc, ws, p, q)
+        _fsymmv(adg, auI, auJ, auv, au6, use6, clist, Sc, ws, p, q)
         pq, pp = _dot2(p, q)
         if pq <= 0.0:
             break
@@ -360,7 +413,7 @@ def pcg(adg, auI, auJ, auv, dg, uI, uJ, uv, voff, uoff, clist, Sc, dinv,
         ad[it] = alpha * delta
         pw[it] = pp / pq
         it += 1
-        vcycle(r, s, dg, uI, uJ, uv, voff, uoff, clist, Sc, ws, dinv,
+        vcycle(r, s, dg, uI, uJ, uv, au6, use6, voff, uoff, clist, Sc, ws, dinv,
                pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, wb, wx, wr)
         filter_vec(clist, Sc, s)
         delta_new = _dot(r, s)

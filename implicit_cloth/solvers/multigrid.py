@@ -396,6 +396,9 @@ class _FusedHierarchy:
         else:
             self.adg, self.auv = np.zeros((n0, 3, 3)), np.zeros((u0, 3, 3))
         self.auI, self.auJ = self.uI[:u0], self.uJ[:u0]
+        #: the fine upper blocks' six distinct numbers, used while every one of them is exactly symmetric
+        self.au6 = np.zeros((u0, 6))
+        self.use6 = False
         self.poff = np.zeros(max(L, 1), dtype=np.int64)
         self.pnnz = np.zeros(L + 1, dtype=np.int64)
         pp, pi, pv = [], [], []
@@ -455,6 +458,7 @@ class _FusedHierarchy:
         flat = fine.blocks.reshape(-1)
         _fused.gather_blocks(flat, fine.diag_index, self.adg.reshape(-1))
         _fused.gather_blocks(flat, self._uidx[0], self.auv.reshape(-1))
+        self.use6 = bool(_fused.gather_sym6(flat, self._uidx[0], self.au6))
         if self.precond_dtype != np.float64:
             self._pack(0, fine)                  # the V-cycle's float32 copy
         self.version = fine.version
@@ -529,7 +533,8 @@ class _FusedHierarchy:
 
     def _hier(self):
         C, upper = self._coarse()
-        return (self.dg, self.uI, self.uJ, self.uv, self.voff, self.uoff, self.clist, self.Sc, self.ws, self.dinv,
+        return (self.dg, self.uI, self.uJ, self.uv, self.au6, self.use6, self.voff, self.uoff, self.clist, self.Sc,
+                self.ws, self.dinv,
                 self.pptr, self.pidx, self.pval, self.poff, self.pnnz, self.tptr, self.tidx, self.tval, self.toff,
                 C, upper, self.mg.omega)
 
@@ -551,7 +556,8 @@ class _FusedHierarchy:
         f = lambda a: np.ascontiguousarray(a, dtype=float).reshape(-1)  # noqa: E731
         h = self._hier()
         dv, it, res, conv, err = _fused.pcg(
-            self.adg, self.auI, self.auJ, self.auv, h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], *h[9:],
+            self.adg, self.auI, self.auJ, self.auv, self.au6, self.use6, h[0], h[1], h[2], h[3], h[6], h[7], h[8],
+            h[9], *h[11:],
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
             f(mass) if mass is not None else np.zeros(0), mass is not None, float(tol), int(max_iterations),
             rule == "bound", int(min_delay), float(delay_fraction))
