@@ -58,11 +58,9 @@ def filter_vec(cidx_list, Sc, x):
         x[3 * i], x[3 * i + 1], x[3 * i + 2] = y0, y1, y2
 
 
-@njit(cache=True, fastmath={"contract"})
-def _symmv(dg, uI, uJ, uv, x, y):
-    """``y = A x`` for a symmetric block matrix stored as its diagonal blocks ``dg`` (n, 3, 3) and its upper
-    blocks ``uv[k] = A[uI[k], uJ[k]]`` (``uI[k] < uJ[k]``; ``A[uJ[k], uI[k]] = uv[k]^T``): each stored
-    off-diagonal block serves both of its products, so one pass reads half the matrix."""
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _diag_product(dg, x, y):
+    """``y = D x`` for the diagonal blocks ``dg`` (n, 3, 3): the start of every symmetric product."""
     for i in range(len(dg)):
         d = dg[i]
         x0 = x[3 * i]
@@ -71,6 +69,14 @@ def _symmv(dg, uI, uJ, uv, x, y):
         y[3 * i] = d[0, 0] * x0 + d[0, 1] * x1 + d[0, 2] * x2
         y[3 * i + 1] = d[1, 0] * x0 + d[1, 1] * x1 + d[1, 2] * x2
         y[3 * i + 2] = d[2, 0] * x0 + d[2, 1] * x1 + d[2, 2] * x2
+
+
+@njit(cache=True, fastmath={"contract"})
+def _symmv(dg, uI, uJ, uv, x, y):
+    """``y = A x`` for a symmetric block matrix stored as its diagonal blocks ``dg`` (n, 3, 3) and its upper
+    blocks ``uv[k] = A[uI[k], uJ[k]]`` (``uI[k] < uJ[k]``; ``A[uJ[k], uI[k]] = uv[k]^T``): each stored
+    off-diagonal block serves both of its products, so one pass reads half the matrix."""
+    _diag_product(dg, x, y)
     for k in range(len(uI)):
         i = uI[k]
         j = uJ[k]
@@ -93,14 +99,7 @@ def _symmv(dg, uI, uJ, uv, x, y):
 def _symmv6(dg, uI, uJ, u6, x, y):
     """:func:`_symmv` for upper blocks that are themselves symmetric, stored as their six distinct numbers
     ``(B00, B01, B02, B11, B12, B22)``: a third less data again (spring blocks ``alpha I + beta u u^T``)."""
-    for i in range(len(dg)):
-        d = dg[i]
-        x0 = x[3 * i]
-        x1 = x[3 * i + 1]
-        x2 = x[3 * i + 2]
-        y[3 * i] = d[0, 0] * x0 + d[0, 1] * x1 + d[0, 2] * x2
-        y[3 * i + 1] = d[1, 0] * x0 + d[1, 1] * x1 + d[1, 2] * x2
-        y[3 * i + 2] = d[2, 0] * x0 + d[2, 1] * x1 + d[2, 2] * x2
+    _diag_product(dg, x, y)
     for k in range(len(uI)):
         i = uI[k]
         j = uJ[k]
