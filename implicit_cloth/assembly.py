@@ -124,23 +124,18 @@ class SystemMatrix:
         d : (N,) float array
             The diagonal values (kg for the mass matrix).
         """
-        d = np.ascontiguousarray(d, dtype=float)
-        if d.shape != (self.n,):
-            raise ValueError(f"reset_diagonal: expected {self.n} diagonal values, got shape {d.shape}")
+        d = self._diagonal_values(d, "reset_diagonal")
         if self.accelerator == "numba":
             from ._assembly_fused import reset_diagonal
 
             reset_diagonal(self.blocks, self.diag_index, d)
             return
         self.blocks.fill(0.0)
-        for a in range(3):
-            self.blocks[self.diag_index, a, a] = d
+        self.add_diagonal(d)
 
     def add_diagonal(self, d: np.ndarray) -> None:
         """Add ``d[i] I`` to diagonal block i (e.g. ``c_v c A_i`` of linear drag), ``d`` of shape (N,)."""
-        d = np.ascontiguousarray(d, dtype=float)
-        if d.shape != (self.n,):
-            raise ValueError(f"add_diagonal: expected {self.n} diagonal values, got shape {d.shape}")
+        d = self._diagonal_values(d, "add_diagonal")
         if self.accelerator == "numba":
             from ._assembly_fused import add_diagonal
 
@@ -148,6 +143,12 @@ class SystemMatrix:
             return
         for a in range(3):
             self.blocks[self.diag_index, a, a] += d
+
+    def _diagonal_values(self, d: np.ndarray, what: str) -> np.ndarray:
+        d = np.ascontiguousarray(d, dtype=float)
+        if d.shape != (self.n,):
+            raise ValueError(f"{what}: expected {self.n} diagonal values, got shape {d.shape}")
+        return d
 
     def finalize(self) -> sp.csr_array:
         """Copy the block values into the CSR matrix and return it (same object every step).

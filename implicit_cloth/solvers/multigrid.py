@@ -273,6 +273,21 @@ def coarse_cholesky(C: np.ndarray, max_tries: int = 40) -> tuple[tuple[np.ndarra
     return (np.eye(len(C)), False), float("nan")
 
 
+def _concat_csr(mats: list) -> tuple:
+    """Row pointers (each matrix's own, local), column indices and values of CSR matrices laid end to end,
+    and where each matrix's pointers start (for the kernels' per-level slices)."""
+    mats = [sp.csr_array(M) for M in mats]
+    for M in mats:
+        M.sort_indices()
+    off = np.zeros(max(len(mats), 1), dtype=np.int64)
+    off[1:len(mats)] = np.cumsum([M.shape[0] + 1 for M in mats])[:-1]
+    if not mats:
+        return np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0), off
+    return (np.concatenate([M.indptr for M in mats]).astype(np.int64),
+            np.concatenate([M.indices for M in mats]).astype(np.int32),
+            np.concatenate([M.data for M in mats]).astype(float), off)
+
+
 def _galerkin_entries(fine: SystemMatrix, coarse: SystemMatrix, fine_up: np.ndarray, coarse_up: np.ndarray,
                       P) -> tuple:
     """Entry lists of :func:`._fused.galerkin` for ``coarse = P^T fine P`` (``P kron I3``), both levels in
@@ -399,32 +414,11 @@ class _FusedHierarchy:
         #: the fine upper blocks' six distinct numbers, used while every one of them is exactly symmetric
         self.au6 = np.zeros((u0, 6))
         self.use6 = False
-        self.poff = np.zeros(max(L, 1), dtype=np.int64)
-        self.pnnz = np.zeros(L + 1, dtype=np.int64)
-        pp, pi, pv = [], [], []
-        for l, P in enumerate(prolongations):
-            P = sp.csr_array(P)
-            P.sort_indices()
-            self.poff[l] = sum(len(x) for x in pp)
-            self.pnnz[l + 1] = self.pnnz[l] + P.nnz
-            pp.append(P.indptr.astype(np.int64))
-            pi.append(P.indices.astype(np.int32))
-            pv.append(P.data.astype(float))
-        self.pptr = np.concatenate(pp) if pp else np.zeros(1, dtype=np.int64)
-        self.pidx = np.concatenate(pi) if pi else np.zeros(0, dtype=np.int32)
-        self.pval = np.concatenate(pv) if pv else np.zeros(0)
-        self.toff = np.zeros(max(L, 1), dtype=np.int64)
-        tp, ti, tv = [], [], []
-        for l, P in enumerate(prolongations):              # P^T as CSR: restriction as a gather
-            PT = sp.csr_array(sp.csr_array(P).T)
-            PT.sort_indices()
-            self.toff[l] = sum(len(x) for x in tp)
-            tp.append(PT.indptr.astype(np.int64))
-            ti.append(PT.indices.astype(np.int32))
-            tv.append(PT.data.astype(float))
-        self.tptr = np.concatenate(tp) if tp else np.zeros(1, dtype=np.int64)
-        self.tidx = np.concatenate(ti) if ti else np.zeros(0, dtype=np.int32)
-        self.tval = np.concatenate(tv) if tv else np.zeros(0)
+        Ps = [sp.csr_array(P) for P in prolongations]
+        self.pptr, self.pidx, self.pval, self.poff = _concat_csr(Ps)
+        self.pnnz = np.cumsum([0] + [P.nnz for P in Ps]).astype(np.int64)
+        # P^T as CSR: restriction as a gather (same entry ranges as P)
+        self.tptr, self.tidx, self.tval, self.toff = _concat_csr([sp.csr_array(P.T) for P in Ps])
         self._gal = [_galerkin_entries(systems[l], systems[l + 1], self._uidx[l], self._uidx[l + 1], P)
                      for l, P in enumerate(prolongations)]
         self.dinv = np.zeros((int(self.voff[-1]), 3, 3), dtype=f)
@@ -441,15 +435,8 @@ class _FusedHierarchy:
             np.concatenate([np.zeros((len(filt.fixed), 3, 3)), filt.partial_S]).reshape(-1, 3, 3))
         self.ws = np.zeros(3 * len(self.clist))
 
-    def _pack(self, l: int, sm: SystemMatrix) -> None:
-        """Level l's diagonal and upper blocks into the packed arrays."""
-        v0, v1, u0, u1 = self.voff[l], self.voff[l + 1], self.uoff[l], self.uoff[l + 1]
-        self.dg[v0:v1] = sm.blocks[sm.diag_index]
-        self.uv[u0:u1] = sm.blocks[self._uidx[l]]
-
     def setup(self, filt: Filter) -> None:
         mg, fine = self.mg, self.mg.fine
-        systems = mg._systems()
         L = len(mg.levels)
         self.filt = filt
         self._filter_arrays(filt)
@@ -459,8 +446,9 @@ class _FusedHierarchy:
         _fused.gather_blocks(flat, fine.diag_index, self.adg.reshape(-1))
         _fused.gather_blocks(flat, self._uidx[0], self.auv.reshape(-1))
         self.use6 = bool(_fused.gather_sym6(flat, self._uidx[0], self.au6))
-        if self.precond_dtype != np.float64:
-            self._pack(0, fine)                  # the V-cycle's float32 copy
+        if self.precond_dtype != np.float64:     # the V-cycle's float32 copy
+            self.dg[:fine.n] = self.adg
+            self.uv[:len(self.auv)] = self.auv
         self.version = fine.version
         c, Sc = self.clist, self.Sc
         eye = np.eye(3)
@@ -478,13 +466,12 @@ class _FusedHierarchy:
             _fused.galerkin(src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
                             self.uv[u1:u2].reshape(-1), *self._gal[l - 1])
             if l == 1 and len(c):
-                Tt, touched, diag = self._touched(filt)
-                S = np.broadcast_to(eye, (n0, 3, 3)).copy()
-                S[c] = Sc
+                Tt, touched, diag, ri, qi = self._touched(filt)
+                Sx = np.concatenate([Sc, eye[None]])     # index -1: a free vertex's filter, I
+                Sr = Sx[ri]
                 A = fine.blocks[touched]
-                r, q = fine.block_rows[touched], fine.block_cols[touched]
-                delta = S[r] @ A @ S[q] - A
-                delta[diag] += eye - S[r[diag]]
+                delta = Sr @ A @ Sx[qi] - A
+                delta[diag] += eye - Sr[diag]
                 corr = (Tt @ delta.reshape(-1, 9)).reshape(-1, 3, 3)
                 nd = v2 - v1
                 self.dg[v1:v2] += corr[:nd]
@@ -494,18 +481,20 @@ class _FusedHierarchy:
         mg._A = [None] * (L + 1)
 
     def _touched(self, filt: Filter):
-        """Fine blocks touching a constrained vertex, and the Galerkin map's columns for them (cached)."""
+        """Fine blocks touching a constrained vertex, the Galerkin map's columns for them, and for each such
+        block the position in ``clist`` of its row and column vertex (-1: free) (cached per ``clist``)."""
         key = self.clist.tobytes()
         if self._touch_key != key:
             fine = self.mg.fine
-            con = np.zeros(fine.n, dtype=bool)
-            con[self.clist] = True
-            touched = np.flatnonzero(con[fine.block_rows] | con[fine.block_cols])
+            cpos = np.full(fine.n, -1, dtype=np.int64)
+            cpos[self.clist] = np.arange(len(self.clist))
+            ri, qi = cpos[fine.block_rows], cpos[fine.block_cols]
+            touched = np.flatnonzero((ri >= 0) | (qi >= 0))
             diag = fine.block_rows[touched] == fine.block_cols[touched]
             sm1 = self.mg.levels[0].system
             rows = np.concatenate([sm1.diag_index, self._uidx[1]])    # level 1's stored blocks, packed order
             Tt = sp.csr_array(self.mg.levels[0].T[rows][:, touched])
-            self._touch = (Tt, touched, diag)
+            self._touch = (Tt, touched, diag, ri[touched], qi[touched])
             self._touch_key = key
         return self._touch
 
