@@ -14,16 +14,13 @@ oscillator the amplitude shrinks by ``1 / sqrt(1 + w^2 h^2)`` per step.
 from __future__ import annotations
 
 from ..model import State
-from .base import ImplicitIntegrator, StepInfo
+from .base import ImplicitIntegrator, StepInfo, _Scheme
 
 
 class BackwardEuler(ImplicitIntegrator):
     name = "backward_euler"
 
-    def step(self, state: State, h: float) -> tuple[State, StepInfo]:
-        info = StepInfo()
+    def _scheme(self, state: State, h: float, info: StepInfo) -> _Scheme:
         x, v, t = state.x, state.v, state.t
         A, f0, kv = self._linearize(x, v, t, h * h, h, v, info)
-        dv = self._solve(A, h * (f0 + h * kv), self._pin_dv(v), info)
-        v1 = v + dv
-        return self._finish(x + h * v1, v1, t + h), info
+        return _Scheme(h * h, h, h * (f0 + h * kv), x, h, v)

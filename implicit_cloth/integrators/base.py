@@ -1,4 +1,16 @@
-"""Integrator interface and the pieces shared by the implicit methods."""
+"""Integrator interface and the pieces shared by the implicit methods.
+
+The step contract (after newton's ``SolverBase.step``)::
+
+    new_state, info = integrator.step(state, h, constraints)
+
+``constraints`` (:class:`~implicit_cloth.constraints.Constraints`, a value: pins
+and contacts with their prescribed motion and friction; ``None`` means the
+model's pins only) is read, never kept; ``info`` (:class:`StepInfo`) carries the
+solver's figures and, for the implicit methods, the constraint impulse
+``info.constraint_impulse`` (N, 3) of the solve. Nothing else passes between the
+integrator and its caller.
+"""
 
 from __future__ import annotations
 
@@ -8,8 +20,15 @@ from typing import Any
 
 import numpy as np
 
+from ..constraints import Constraints
 from ..model import Model, State
 from ..solvers import Filter, filtered_pcg, make_preconditioner
+
+
+#: Relative accuracy of the Newton corrections' linear solves (inexact Newton: the next iteration corrects it).
+NEWTON_FORCING = 0.1
+#: Newton stops when a correction is this small relative to the step's velocity change (M-norm).
+NEWTON_TOLERANCE = 1e-2
 
 
 @dataclass
@@ -24,14 +43,34 @@ class StepInfo:
     t_solve: float = 0.0
     #: collision figures of the step (a CollisionInfo), when the scene has obstacles
     collision: Any = None
+    #: the impulse (N, 3), N*s, the constraints applied over the step in the last solve when it had contacts
+    #: (``h F_c`` with ``A dv - b = c_v F_c``; non-zero only in constrained directions); None otherwise
+    constraint_impulse: np.ndarray | None = None
+    #: linear solves made in the step (an implicit step with contacts may solve more than once)
+    solves: int = 0
+    #: Newton iterations of the step (implicit methods; 1 = one linearisation, BW98)
+    newton_iterations: int = 0
+
+    def absorb(self, other: "StepInfo") -> None:
+        """Add another solve of the same step: iterations and times summed, residual the largest."""
+        self.iterations += other.iterations
+        self.residual = max(self.residual, other.residual)
+        self.converged = self.converged and other.converged
+        self.t_assembly += other.t_assembly
+        self.t_setup += other.t_setup
+        self.t_solve += other.t_solve
+        self.solves += other.solves
+        self.newton_iterations = max(self.newton_iterations, other.newton_iterations)
 
 
 class Integrator:
-    """Maps ``(state, h)`` to the state one step of ``h`` seconds later.
+    """Maps ``(state, h, constraints)`` to the state one step of ``h`` seconds later.
 
     Subclasses implement :meth:`step`. Every method uses the same force code
     (:meth:`~implicit_cloth.model.Model.forces` / ``linearize``) and honours pins
     exactly: pinned vertices end each step at ``a_p + w_p t`` with velocity ``w_p``.
+    Explicit methods honour pins only; contacts are the implicit methods' (the
+    collision stage corrects an explicit step afterwards).
     """
 
     name = ""
@@ -43,7 +82,8 @@ class Integrator:
     def reset(self) -> None:
         """Forget any history (called when the state is assigned or dt changes)."""
 
-    def step(self, state: State, h: float) -> tuple[State, StepInfo]:  # pragma: no cover - abstract
+    def step(self, state: State, h: float,
+             constraints: Constraints | None = None) -> tuple[State, StepInfo]:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def _accel(self, x: np.ndarray, v: np.ndarray, t: float, info: StepInfo) -> np.ndarray:
@@ -57,32 +97,61 @@ class Integrator:
         return State(x, v, t)
 
 
+@dataclass
+class _Scheme:
+    """One implicit step's linear system and position update, before the constraints.
+
+    ``A dv = b`` with ``A = M - c_v dF/dv - c_x dF/dx`` linearised at ``x``, ``v``; the end
+    position is ``x_pred + beta (v + dv)``. The nonlinear equation the step approximates is
+    ``M (v1 - v_hat) = c_v F(x_pred + beta v1, v1)`` (``beta = c_v``, ``c_x = c_v^2``).
+    """
+
+    c_x: float
+    c_v: float
+    b: np.ndarray
+    x_pred: np.ndarray
+    beta: float
+    v_hat: np.ndarray
+
+
+@dataclass
+class _Linearization:
+    """The last assembled system, reused when the same ``(state, h)`` is solved again with other constraints."""
+
+    state: State
+    h: float
+    scheme: _Scheme
+    version: int                           # SystemMatrix.version when it was assembled
+
+
 class ImplicitIntegrator(Integrator):
-    """Shared machinery of the implicit methods: assembly, filter, preconditioner, filtered PCG."""
+    """Shared machinery of the implicit methods: assembly, constraints, preconditioner, filtered PCG.
+
+    Subclasses give :meth:`_scheme` (their linear system and position update); the
+    constraints (pins, contacts and contact friction) are applied here the same way for
+    every method.
+    """
 
     implicit = True
 
     def __init__(self, model: Model, solver: dict[str, Any] | None = None) -> None:
         super().__init__(model, solver)
-        opts = {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "multigrid"}
+        opts = {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "multigrid", "newton_iterations": 1}
         opts.update(solver or {})
         self.tolerance = float(opts["tolerance"])
         self.max_iterations = int(opts["max_iterations"])
+        #: Newton iterations of a step (1: one linearisation, BW98); a caller may ask for more per step
+        self.newton_iterations = int(opts["newton_iterations"])
         self.precond = make_preconditioner(opts["preconditioner"], model)
-        self.filter = Filter(model.n, model.pinned)
         self._mass3 = np.repeat(model.masses, 3)
-        #: prescribed velocity changes (N, 3) of constrained non-pinned vertices (set by the collider)
-        self.extra_dv: np.ndarray | None = None
-        #: ``A dv - b`` (N, 3), N*s, of the last solve when the filter had partial constraints:
-        #: the impulse the constraints applied (only their constrained components are non-zero)
-        self.constraint_impulse: np.ndarray | None = None
+        self._pins = Constraints.of_pins(model)
+        self._lin: _Linearization | None = None
 
-    def _pin_dv(self, v: np.ndarray) -> np.ndarray:
-        """Prescribed velocity changes z: pinned vertices reach their pin velocity (plus ``extra_dv``)."""
-        z = np.zeros_like(v) if self.extra_dv is None else self.extra_dv.copy()
-        if len(self.model.pinned):
-            z[self.model.pinned] = self.model.pin_velocity - v[self.model.pinned]
-        return z
+    def reset(self) -> None:
+        self._lin = None
+
+    def _scheme(self, state: State, h: float, info: StepInfo) -> _Scheme:  # pragma: no cover - abstract
+        raise NotImplementedError
 
     def _linearize(self, x, v, t, c_x, c_v, w, info: StepInfo):
         t0 = time.perf_counter()
@@ -90,19 +159,157 @@ class ImplicitIntegrator(Integrator):
         info.t_assembly += time.perf_counter() - t0
         return out
 
-    def _solve(self, A, b: np.ndarray, z: np.ndarray, info: StepInfo) -> np.ndarray:
-        """Solve ``A dv = b`` with pins prescribing ``dv = z`` through the filter."""
+    def _system(self, state: State, h: float, c: Constraints, info: StepInfo) -> tuple[_Scheme, Any, np.ndarray]:
+        """The scheme, the finalized matrix and the right-hand side (with the contacts' kinetic friction)."""
+        sysm = self.model.system
+        lin = self._lin
+        if lin is None or lin.state is not state or lin.h != h or lin.version != sysm.version:
+            scheme = self._scheme(state, h, info)              # assembles and finalizes
+            lin = self._lin = _Linearization(state, h, scheme, sysm.version)
+        scheme = lin.scheme
+        b = scheme.b
+        if c.n_contacts and np.any(c.friction):
+            b = b.copy()
+            b[c.contact] += scheme.c_v * c.friction
+        return scheme, sysm.csr, b
+
+    def step(self, state: State, h: float, constraints: Constraints | None = None,
+             guess: np.ndarray | None = None, newton: int | None = None,
+             start: np.ndarray | None = None) -> tuple[State, StepInfo]:
+        """One step under ``constraints`` (the model's pins when None).
+
+        ``guess`` warm-starts the first solve's free part; ``newton`` (default ``solver.newton_iterations``)
+        is the most Newton iterations: 1 is Baraff & Witkin's single linearisation, more continue with
+        :meth:`_newton` from its result. ``start``: end velocities (N, 3) of an earlier attempt at this step
+        to continue from with ``newton`` Newton iterations instead (their constrained components are first
+        set to what ``constraints`` prescribe).
+        """
+        c = self._pins if constraints is None else constraints
+        info = StepInfo(newton_iterations=1)
+        scheme, A, b = self._system(state, h, c, info)
+        v = state.v
+        z = np.zeros_like(v)
+        if len(c.pinned):
+            z[c.pinned] = c.pin_velocity - v[c.pinned]
+        if c.n_contacts:
+            n = c.normal
+            # end on the plane n . x1 = offset, with x1 = x_pred + beta v1
+            vn1 = (c.offset - np.einsum("ij,ij->i", n, scheme.x_pred[c.contact])) / scheme.beta
+            z[c.contact] = c.end_velocity(vn1) - v[c.contact]
+            filt = Filter(self.model.n, c.pinned, c.contact, c.filter_blocks())
+        else:
+            filt = Filter(self.model.n, c.pinned)
+        iters = self.newton_iterations if newton is None else int(newton)
+        if start is not None:
+            # the constrained components of v0 + z, the free ones of the earlier attempt
+            v1 = v + z + filt.apply((start - v - z).reshape(-1)).reshape(-1, 3)
+            info.newton_iterations = 0
+            return self._newton(state, h, c, scheme, v1, filt, max(iters, 1), info)
+        dv = self._solve(A, b, z, filt, info, guess)
+        if iters > 1 and np.all(np.isfinite(dv)):
+            return self._newton(state, h, c, scheme, v + dv, filt, iters - 1, info)
+        if c.n_contacts:   # A dv - b = c_v F_c: the constraint force F_c over the step h is the impulse
+            info.constraint_impulse = (A @ dv.reshape(-1) - b.reshape(-1)).reshape(-1, 3) * (h / scheme.c_v)
+        v1 = v + dv
+        return self._finish(scheme.x_pred + scheme.beta * v1, v1, state.t + h), info
+
+    # ------------------------------------------------------------------ nonlinear solve
+    def _forces(self, x: np.ndarray, v: np.ndarray, t: float, c: Constraints) -> np.ndarray:
+        f = self.model.forces(x, v, t)
+        if c.n_contacts:
+            f[c.contact] += c.friction
+        return f
+
+    def _conservative(self, x: np.ndarray, t: float) -> tuple[float, np.ndarray]:
+        """Potential energy (J) and conservative force (N) of gravity and the springs' elasticity at ``x``."""
+        f = np.zeros_like(x)
+        zero = np.zeros_like(x)
+        u = 0.0
+        for e in self.model.effects:
+            if e.name in ("gravity", "springs"):
+                e.force(x, zero, t, f)
+                u += e.potential(x)
+        return u, f
+
+    def _potential(self, x: np.ndarray) -> float:
+        return float(sum(self.model.potential_energy(x).values()))
+
+    def _newton(self, state: State, h: float, c: Constraints, scheme: _Scheme, v: np.ndarray, filt: Filter,
+                iterations: int, info: StepInfo) -> tuple[State, StepInfo]:
+        """Continue the step by Newton iterations with a line search on the incremental potential.
+
+        The step's nonlinear equation ``R(v) = M (v - v_hat) - c_v F(x(v), v) = 0``, ``x(v) = x_pred + c_v v``,
+        is the stationarity of the incremental potential (Martin et al. 2011; Gast et al. 2015)::
+
+            Phi(v) = |v - v_hat|_M^2 / 2 + U(x(v)) + c_v D(v)
+
+        with ``U`` gravity and the springs' elastic energy, and ``D`` the dissipation potential of the forces
+        linear in the velocity (spring damping, drag with its wind) and of the constant ones (kinetic friction),
+        their geometry taken at the current iterate. Each iteration solves ``A_k d = -R(v_k)`` (the same filtered PCG and constraints,
+        constrained components 0: every iterate meets the constraints the first solve met) and backtracks
+        ``v_k + a d`` from ``a = 1`` until ``Phi`` decreases enough (Armijo, ``1e-4``), so no iteration can
+        raise it. Stops when ``|a d| <= tolerance |v - v0|``, after ``iterations``, or when the line search
+        fails (the iterate is kept). Returns the step's state and figures.
+        """
+        M = self.model.masses[:, None]
+        t1 = state.t + h
+        cv = scheme.c_v
+        A = None
+        for _ in range(iterations):
+            x = scheme.x_pred + cv * v
+            A, f, _ = self._linearize(x, v, t1, scheme.c_x, cv, None, info)
+            if c.n_contacts:
+                f[c.contact] += c.friction
+            self._lin = None          # the matrix no longer holds the step's first linearisation
+            R = M * (v - scheme.v_hat) - cv * f
+            R_free = filt.apply(R.copy().reshape(-1))
+            d = self._solve(A, -R, np.zeros_like(v), filt, info, tolerance=max(self.tolerance, NEWTON_FORCING))
+            slope = float(np.dot(R_free, d.reshape(-1)))
+            if not np.isfinite(slope) or slope >= 0.0:
+                break
+            u0, p0 = self._conservative(x, t1)
+            f_nc = f - p0                                      # affine in v: f_nc(v) = f_w + G v
+            Gd = self._forces(x, v + d, t1, c) - f             # G d
+            dGd = float(np.einsum("ij,ij->", d, Gd))
+            dMd = float(np.einsum("ij,ij->", M * d, d))
+            lin = float(np.einsum("ij,ij->", M * (v - scheme.v_hat), d)) - cv * float(np.einsum("ij,ij->", f_nc, d))
+            a = 1.0
+            accepted = False
+            for _ls in range(12):
+                dphi = a * lin + 0.5 * a * a * (dMd - cv * dGd) + self._potential(x + a * cv * d) - u0
+                if dphi <= 1e-4 * a * slope:
+                    accepted = True
+                    break
+                a *= 0.5
+            if not accepted:
+                break
+            v = v + a * d
+            info.newton_iterations += 1
+            if a * np.sqrt(dMd) <= NEWTON_TOLERANCE * np.sqrt(float(np.einsum("ij,ij->", M * (v - state.v),
+                                                                                  v - state.v))):
+                break
+        if c.n_contacts:   # the constraint force at the last iterate: F_c = (M (v - v_hat) - c_v F) / c_v
+            x = scheme.x_pred + cv * v
+            Rc = M * (v - scheme.v_hat) - cv * self._forces(x, v, t1, c)
+            info.constraint_impulse = Rc * (h / cv)
+        v1 = v.copy()
+        return self._finish(scheme.x_pred + scheme.beta * v1, v1, t1), info
+
+    def _solve(self, A, b: np.ndarray, z: np.ndarray, filt: Filter, info: StepInfo,
+               guess: np.ndarray | None = None, tolerance: float | None = None) -> np.ndarray:
+        """Solve ``A dv = b`` with the constrained components of ``dv`` prescribed (``z``) through ``filt``."""
         t0 = time.perf_counter()
-        self.precond.setup(self.model.system, self.filter)
+        self.precond.setup(self.model.system, filt)
         t1 = time.perf_counter()
-        dv, res = filtered_pcg(A, b.reshape(-1), z.reshape(-1), self.filter, self.precond,
-                               self.tolerance, self.max_iterations, mass=self._mass3,
-                               rule=self.precond.stopping_rule)
+        dv, res = filtered_pcg(A, b.reshape(-1), z.reshape(-1), filt, self.precond,
+                               self.tolerance if tolerance is None else tolerance, self.max_iterations,
+                               mass=self._mass3,
+                               rule=self.precond.stopping_rule,
+                               guess=None if guess is None else guess.reshape(-1))
         info.t_setup += t1 - t0
         info.t_solve += time.perf_counter() - t1
-        info.iterations, info.residual, info.converged = res.iterations, res.residual, res.converged
-        if len(self.filter.partial):
-            self.constraint_impulse = (A @ dv - b.reshape(-1)).reshape(-1, 3)
-        else:
-            self.constraint_impulse = None
+        info.iterations += res.iterations
+        info.residual = max(info.residual, res.residual)
+        info.converged = info.converged and res.converged
+        info.solves += 1
         return dv.reshape(-1, 3)

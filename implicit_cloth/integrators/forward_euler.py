@@ -6,6 +6,7 @@ oscillator the amplitude grows by ``sqrt(1 + w^2 h^2)`` per step (always unstabl
 
 from __future__ import annotations
 
+from ..constraints import Constraints
 from ..model import State
 from .base import Integrator, StepInfo
 
@@ -13,7 +14,7 @@ from .base import Integrator, StepInfo
 class ForwardEuler(Integrator):
     name = "forward_euler"
 
-    def step(self, state: State, h: float) -> tuple[State, StepInfo]:
+    def step(self, state: State, h: float, constraints: Constraints | None = None) -> tuple[State, StepInfo]:
         info = StepInfo()
         a = self._accel(state.x, state.v, state.t, info)
         return self._finish(state.x + h * state.v, state.v + h * a, state.t + h), info

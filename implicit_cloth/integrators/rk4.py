@@ -5,6 +5,7 @@ Four force evaluations per step. Exact for free fall (``x = x0 + g t^2 / 2``).
 
 from __future__ import annotations
 
+from ..constraints import Constraints
 from ..model import State
 from .base import Integrator, StepInfo
 
@@ -12,7 +13,7 @@ from .base import Integrator, StepInfo
 class RK4(Integrator):
     name = "rk4"
 
-    def step(self, state: State, h: float) -> tuple[State, StepInfo]:
+    def step(self, state: State, h: float, constraints: Constraints | None = None) -> tuple[State, StepInfo]:
         info = StepInfo()
         x, v, t = state.x, state.v, state.t
         a1 = self._accel(x, v, t, info)

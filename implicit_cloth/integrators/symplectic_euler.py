@@ -7,6 +7,7 @@ frequency w it is bounded for ``h < 2 / w`` and unstable above.
 
 from __future__ import annotations
 
+from ..constraints import Constraints
 from ..model import State
 from .base import Integrator, StepInfo
 
@@ -14,7 +15,7 @@ from .base import Integrator, StepInfo
 class SymplecticEuler(Integrator):
     name = "symplectic_euler"
 
-    def step(self, state: State, h: float) -> tuple[State, StepInfo]:
+    def step(self, state: State, h: float, constraints: Constraints | None = None) -> tuple[State, StepInfo]:
         info = StepInfo()
         v1 = state.v + h * self._accel(state.x, state.v, state.t, info)
         return self._finish(state.x + h * v1, v1, state.t + h), info

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..constraints import Constraints
 from ..model import State
 from .base import Integrator, StepInfo
 
@@ -30,7 +31,7 @@ class Verlet(Integrator):
     def reset(self) -> None:
         self._cache = None
 
-    def step(self, state: State, h: float) -> tuple[State, StepInfo]:
+    def step(self, state: State, h: float, constraints: Constraints | None = None) -> tuple[State, StepInfo]:
         info = StepInfo()
         if self._cache is not None and self._cache[0] is state:
             a0 = self._cache[1]

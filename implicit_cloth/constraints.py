@@ -1,0 +1,103 @@
+"""The constraints of one step, passed to :meth:`Integrator.step <implicit_cloth.integrators.Integrator.step>` as a value.
+
+Two kinds, both in Baraff & Witkin's vocabulary (BW98 §5.3: a vertex constrained in
+0, 1, 2 or 3 directions):
+
+* **Pins**: vertex ``p`` ends the step with the prescribed velocity ``w_p`` (all
+  three directions; its position follows ``a_p + w_p t`` exactly).
+* **Contacts**: vertex ``i`` ends the step on the plane ``n_i . x_i(t + h) =
+  offset_i``, with ``n_i`` the outward unit normal of an obstacle at the end of
+  the step. The integrator turns the plane into a prescribed normal velocity with
+  its own position update (backward Euler ``x1 = x0 + h v1``; BDF2
+  ``x1 = 4/3 x0 - 1/3 x_-1 + 2/3 h v1``), so a contact is met exactly whatever the
+  method. Coulomb friction in Baraff & Witkin's vocabulary: a *sticking*
+  contact is constrained in all three directions, its tangential velocity that
+  of the obstacle (``velocity``) at the contact; a *sliding* one only along
+  ``n_i``, with the kinetic friction force ``friction_i`` (N, opposite to its
+  sliding, of magnitude ``mu N``) applied in the solve. The collision stage
+  chooses which (:meth:`Collider.step <implicit_cloth.collision.Collider.step>`):
+  a sticking contact whose tangential impulse exceeds ``mu`` times its normal
+  impulse starts to slide, a sliding one whose motion the friction would
+  reverse sticks.
+
+What the solve gives back, per vertex, is the constraint impulse
+``J = A dv - b`` (N*s; non-zero only in constrained directions): the pins'
+reaction and each contact's normal impulse ``J_i . n_i``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def _empty(*shape: int) -> np.ndarray:
+    return np.zeros((0, *shape))
+
+
+@dataclass(frozen=True)
+class Constraints:
+    """Pins and contacts of one step (module docstring).
+
+    Attributes
+    ----------
+    pinned : (P,) int array
+        Fully constrained vertices.
+    pin_velocity : (P, 3) array
+        Their end velocity, m/s.
+    contact : (K,) int array
+        Vertices in contact (distinct, none of them pinned).
+    normal : (K, 3) array
+        Outward unit normals.
+    offset : (K,) array
+        End-of-step plane ``normal . x = offset``, m.
+    velocity : (K, 3) array
+        Obstacle velocity at each contact, m/s.
+    stick : (K,) bool array
+        Sticking contacts (tangential velocity prescribed: the obstacle's).
+    friction : (K, 3) array
+        Kinetic friction force on sliding contacts, N (0 on sticking ones).
+    """
+
+    pinned: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    pin_velocity: np.ndarray = field(default_factory=lambda: _empty(3))
+    contact: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    normal: np.ndarray = field(default_factory=lambda: _empty(3))
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    velocity: np.ndarray = field(default_factory=lambda: _empty(3))
+    stick: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    friction: np.ndarray = field(default_factory=lambda: _empty(3))
+
+    @classmethod
+    def of_pins(cls, model) -> "Constraints":
+        """The model's pins only."""
+        return cls(np.asarray(model.pinned, dtype=np.int64), np.asarray(model.pin_velocity, dtype=float))
+
+    def with_contacts(self, idx: np.ndarray, normal: np.ndarray, offset: np.ndarray, velocity: np.ndarray,
+                      stick: np.ndarray | None = None, friction: np.ndarray | None = None) -> "Constraints":
+        """These pins with the given contacts (replacing any contacts); by default frictionless."""
+        idx = np.asarray(idx, dtype=np.int64)
+        st = np.zeros(len(idx), dtype=bool) if stick is None else np.asarray(stick, dtype=bool)
+        fr = np.zeros((len(idx), 3)) if friction is None else np.asarray(friction, dtype=float)
+        return Constraints(self.pinned, self.pin_velocity, idx, np.asarray(normal, dtype=float),
+                           np.asarray(offset, dtype=float), np.asarray(velocity, dtype=float), st, fr)
+
+    @property
+    def n_contacts(self) -> int:
+        return len(self.contact)
+
+    def filter_blocks(self) -> np.ndarray:
+        """``S_i``: ``I - n_i n_i^T`` of sliding contacts, 0 of sticking ones, (K, 3, 3)."""
+        n = self.normal
+        S = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
+        S[self.stick] = 0.0
+        return S
+
+    def end_velocity(self, normal_speed: np.ndarray) -> np.ndarray:
+        """The constrained part of the contacts' end velocities, (K, 3): ``normal_speed n`` plus, for sticking
+        contacts, the obstacle's tangential velocity."""
+        n = self.normal
+        u = self.velocity
+        ut = u - np.einsum("ij,ij->i", u, n)[:, None] * n
+        return normal_speed[:, None] * n + np.where(self.stick[:, None], ut, 0.0)
