@@ -1,29 +1,51 @@
-"""Run health: energies, strain, and the divergence bound.
+"""Run health: energies, strain, the energy balance of a step, and the divergence bound.
+
+Energy balance of a step
+------------------------
+Gravity and the springs are conservative; damping, drag, friction, inelastic
+contact and backward Euler's numerical damping only take energy away. So over
+any (sub)step from state 0 to state 1 of length ``h``::
+
+    E1 - E0 <= W_ext + allowance
+    W_ext = h (P0 + P1) / 2 + W_obstacles
+
+with ``E`` the total energy (kinetic + gravity + springs), ``P`` the power of
+the moving pins and of the wind on the drag (:func:`pin_power`,
+:meth:`StepMeasures.power`) and ``W_obstacles`` the work the obstacles did,
+computed from what they did (contact impulses times the obstacle's velocity at
+the contact; 0 for an obstacle that does not move). A step that gains more
+created energy from nowhere: a linearised step overshooting, or a contact
+treatment that does work. The allowance is a fraction of the energy the step
+itself moves about, from the two states only (never from the run's length)::
+
+    allowance = max_energy_growth * E_step
+    E_step = max(K0, K1) + max(S0, S1) + |G1 - G0| + |W_ext|
+
+(``K`` kinetic, ``S`` spring, ``G`` gravity energy), so a cloth at rest has
+almost none and a falling one the work gravity does in the step.
 
 Divergence bound
 ----------------
 A run is declared diverged when its state stops being finite (checked every
 step) or when, at a kept frame, its total energy has grown by more than
 ``divergence_factor`` (default 1000, ``simulation.divergence_factor``) times
-the run's energy scale::
+the run's energy scale, beyond the pins' and the obstacles' work::
 
-    E_total(t) - E_total(0) - W_pins(t) > divergence_factor * E_scale
+    E_total(t) - E_total(0) - W_pins(t) - W_obstacles(t) > divergence_factor * E_scale
     E_scale = E_kin(0) + U_spring(0) + m |g| L + m v_ref^2 / 2
-    L       = initial bounding-box diagonal + max pin speed * T + |g| T^2 / 2
+    L       = initial bounding-box diagonal
     v_ref   = max pin speed + wind speed + max initial vertex speed
 
-with ``W_pins`` the work done on the cloth by moving pins (:func:`pin_power`,
-integrated by the trapezoidal rule over each step; 0 when no pin moves),
-``m`` the cloth's mass and ``T`` the run's duration (``L`` bounds how far
-anything can travel); when all those terms vanish (a cloth at rest with nothing
-acting on it) ``E_scale = m (L / T)^2 / 2``.
-Total energy includes gravity, so free fall does not count as growth; a stable
-run can swing its energy by a few times ``E_scale`` (symplectic methods do),
-three orders of magnitude below the bound, while an unstable explicit run
-grows exponentially and crosses it within a few steps.
+from the initial state only (the same bound whatever the run's duration), with
+``m`` the cloth's mass; when all those terms vanish ``E_scale = m (L / 1 s)^2 / 2``.
+A stable run can swing its energy by a few times ``E_scale`` (symplectic
+methods do), three orders of magnitude below the bound, while an unstable
+explicit run grows exponentially and crosses it within a few steps.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 
@@ -63,22 +85,76 @@ def total_energy(model: Model, x: np.ndarray, v: np.ndarray) -> float:
     return model.kinetic_energy(v) + float(sum(model.potential_energy(x).values()))
 
 
-def energy_scale(model: Model, x: np.ndarray, v: np.ndarray, duration: float) -> float:
-    """The energy scale ``E_scale`` of the divergence bound (module docstring), J."""
+def energy_scale(model: Model, x: np.ndarray, v: np.ndarray, duration: float | None = None) -> float:
+    """The energy scale ``E_scale`` of the divergence bound (module docstring), J.
+
+    From the state alone: ``duration`` is accepted for compatibility and not used (the bound used to
+    grow with the square of the run's length).
+    """
     e = measure(model, x, v)
     eff = model.scene.data["effects"]
     g = float(np.linalg.norm(eff.get("gravity", [0.0, 0.0, 0.0])))
     wind = float(np.linalg.norm(eff["wind"]["velocity"])) if "wind" in eff else 0.0
     pin_speed = float(np.linalg.norm(model.pin_velocity, axis=1).max()) if len(model.pinned) else 0.0
     v_max = float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0
-    diag = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
-    L = diag + pin_speed * duration + 0.5 * g * duration**2
+    L = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
     m = model.total_mass
     v_ref = pin_speed + wind + v_max
     scale = e["kinetic"] + e["springs"] + m * g * L + 0.5 * m * v_ref**2
     if scale <= 0.0:
-        scale = 0.5 * m * (L / duration) ** 2
+        scale = 0.5 * m * max(L, 1e-3) ** 2
     return scale
+
+
+class StepMeasures:
+    """Energies, spring strains and external power of states, for the energy balance of steps.
+
+    One evaluation of the spring lengths per state gives both the spring energy and the strains; the last
+    two states measured are cached (a step's end is the next step's start).
+    """
+
+    def __init__(self, model: Model) -> None:
+        self.model = model
+        self._wind = next((e for e in model.effects if e.name == "drag" and e.wind is not None), None)
+        self._pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity))
+        self._gravity = [e for e in model.effects if e.name == "gravity"]
+        self._cache: list[tuple[Any, tuple[float, float, float, np.ndarray | None, float]]] = []
+
+    def power(self, s: Any) -> float:
+        """Power of the pins and of the wind on the cloth, W."""
+        p = pin_power(self.model, s.x, s.v, s.t) if self._pins_move else 0.0
+        if self._wind is not None:
+            w = np.broadcast_to(self._wind.wind.velocity(s.x, s.t), s.v.shape)
+            p += float(np.einsum("i,ij,ij->", self._wind._cA[:, 0], w, s.v))
+        return p
+
+    def __call__(self, s: Any) -> tuple[float, float, float, np.ndarray | None, float]:
+        """``(kinetic, gravity, springs)`` energies (J), spring strains ``(l - L0) / L0`` (or None) and power (W)."""
+        for state, measured in self._cache:
+            if state is s:
+                return measured
+        m = self.model
+        kin = m.kinetic_energy(s.v)
+        grav = float(sum(e.potential(s.x) for e in self._gravity))
+        spring, strain = 0.0, None
+        sp = m.springs
+        if sp is not None and len(sp.i):      # spring energy and strains from one evaluation of the lengths
+            ext = sp.lengths(s.x) - sp.L0
+            spring = 0.5 * float(np.dot(sp.k, ext * ext))
+            strain = np.divide(ext, sp.L0, out=np.zeros_like(ext), where=sp.L0 > 0)
+        out = (kin, grav, spring, strain, self.power(s))
+        self._cache = self._cache[-1:] + [(s, out)]
+        return out
+
+    def balance(self, old: Any, new: Any, h: float, obstacle_work: float = 0.0) -> tuple[float, float]:
+        """``(gain, E_step)`` of a step (module docstring): energy gained beyond the external work, and the
+        energy the step moves about, J."""
+        k0, g0, s0, _, p0 = self(old)
+        k1, g1, s1, _, p1 = self(new)
+        w = 0.5 * h * (p0 + p1) + obstacle_work
+        gain = (k1 + g1 + s1) - (k0 + g0 + s0) - w
+        e_step = max(k0, k1) + max(s0, s1) + abs(g1 - g0) + abs(w)
+        return gain, e_step
 
 
 def pin_power(model: Model, x: np.ndarray, v: np.ndarray, t: float) -> float:

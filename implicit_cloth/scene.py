@@ -56,19 +56,22 @@ PRECONDITIONERS: tuple[str, ...] = ("multigrid", "block_jacobi")
 
 DEFAULTS: dict[str, dict[str, Any]] = {
     "simulation": {"integrator": "backward_euler", "dt": 0.01, "duration": 1.0, "frame_rate": 30.0},
-    "solver": {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "multigrid"},
+    "solver": {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "multigrid", "newton_iterations": 1},
 }
 
 _TOP_KEYS = ("simulation", "solver", "cloth", "effects", "obstacles", "collision")
 _SIM_KEYS = ("integrator", "dt", "duration", "frame_rate", "divergence_factor", "adaptive", "strain_limit")
-_ADAPTIVE_KEYS = ("enabled", "max_halvings", "grow_after", "max_strain", "max_energy_growth", "retry_unconverged")
+_ADAPTIVE_KEYS = ("enabled", "max_halvings", "grow_after", "max_strain", "max_energy_growth", "retry_unconverged",
+                  "newton_iterations")
 #: [simulation.adaptive] defaults; ``enabled`` defaults to whether the integrator is implicit.
 ADAPTIVE_DEFAULTS: dict[str, Any] = {"max_halvings": 5, "grow_after": 4, "max_strain": 1.0,
-                                     "max_energy_growth": 0.1, "retry_unconverged": True}
+                                     "max_energy_growth": 0.01, "retry_unconverged": True, "newton_iterations": 8}
 _STRAIN_LIMIT_KEYS = ("max_strain", "iterations")
 #: Most halvings of the step (dt / 2^30 is below a nanosecond for dt = 1 s).
 MAX_HALVINGS = 30
-_SOLVER_KEYS = ("tolerance", "max_iterations", "preconditioner")
+_SOLVER_KEYS = ("tolerance", "max_iterations", "preconditioner", "newton_iterations")
+#: Most Newton iterations per step.
+MAX_NEWTON_ITERATIONS = 100
 _CLOTH_KEYS = (
     "size", "resolution", "center", "plane", "mesh", "scale", "translation",
     "mass", "density", "pins", "material", "springs", "velocity",
@@ -229,6 +232,9 @@ def _adaptive(d: Any, integrator: str) -> dict[str, Any]:
         out["max_energy_growth"] = _number(f"{path}.max_energy_growth", d["max_energy_growth"], lo=0.0)
     if "retry_unconverged" in d:
         out["retry_unconverged"] = _boolean(f"{path}.retry_unconverged", d["retry_unconverged"])
+    if "newton_iterations" in d:
+        out["newton_iterations"] = _integer(f"{path}.newton_iterations", d["newton_iterations"], lo=1,
+                                            hi=MAX_NEWTON_ITERATIONS)
     return out
 
 
@@ -274,6 +280,9 @@ def _solver(d: Mapping[str, Any]) -> dict[str, Any]:
                                          hi=MAX_SOLVER_ITERATIONS)
     if "preconditioner" in d:
         out["preconditioner"] = _choice("solver.preconditioner", d["preconditioner"], PRECONDITIONERS)
+    if "newton_iterations" in d:
+        out["newton_iterations"] = _integer("solver.newton_iterations", d["newton_iterations"], lo=1,
+                                            hi=MAX_NEWTON_ITERATIONS)
     return out
 
 

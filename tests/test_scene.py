@@ -79,8 +79,8 @@ def test_defaults_and_material(hanging_scene):
     s = ic.Scene.from_dict(d)
     assert s.data["simulation"] == {"integrator": "backward_euler", "dt": 0.01, "duration": 1.0, "frame_rate": 30.0,
                                     "adaptive": {"enabled": True, "max_halvings": 5, "grow_after": 4,
-                                                 "max_strain": 1.0, "max_energy_growth": 0.1,
-                                                 "retry_unconverged": True}}
+                                                 "max_strain": 1.0, "max_energy_growth": 0.01,
+                                                 "retry_unconverged": True, "newton_iterations": 8}}
     denim = ic.MATERIALS["denim"]
     assert s.data["cloth"]["springs"]["bend"] == {"stiffness": denim.bend.stiffness, "damping": denim.bend.damping}
     # a [cloth.springs] entry overrides the preset, per key
