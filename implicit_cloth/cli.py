@@ -13,7 +13,9 @@ Usage::
 Exit codes
 ----------
 0
-    The run finished (``status`` ``"ok"``).
+    The run finished (``status`` ``"ok"``, or ``"warning"`` without ``--strict``: each warning of the
+    run's health, e.g. energy created beyond the balance, is one line of the summary and one
+    ``implicit-cloth: warning: ...`` line on stderr).
 1
     The results could not be written (an operating-system error after the run,
     e.g. a full disk). The two files are written together: a failure leaves
@@ -28,6 +30,9 @@ Exit codes
     The run diverged: the frames kept before it are written to
     ``trajectory.npz``, ``report.json`` has ``status`` ``"diverged"`` and the
     reason, and the reason is printed on stderr.
+4
+    With ``run --strict``: the run finished with ``status`` ``"warning"`` (its
+    results are written as for 0).
 
 Other subcommands: ``bench`` (a benchmark of benchmarks/), ``batch`` (a
 parameter sweep, see :mod:`implicit_cloth.batch`), ``export`` (meshes of a
@@ -59,6 +64,7 @@ EXIT_OK = 0
 EXIT_WRITE_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
+EXIT_WARNING = 4
 
 
 # --------------------------------------------------------------------------- parser
@@ -77,8 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Simulate a TOML scene. Writes DIR/trajectory.npz (positions, times, faces) and "
                     "DIR/report.json (run report and normalised scene). Options override the scene's "
                     "[simulation] table and are validated like it.",
-        epilog="Exit codes: 0 ok, 1 results could not be written, 2 bad input, 3 diverged "
-               "(partial trajectory and report still written).",
+        epilog="Exit codes: 0 ok (or warning without --strict), 1 results could not be written, 2 bad input, "
+               "3 diverged (partial trajectory and report still written), 4 finished with warnings (--strict).",
     )
     run.add_argument("scene", metavar="SCENE.toml", help="scene file")
     run.add_argument("--out", metavar="DIR", default=None,
@@ -92,6 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="override simulation.frame_rate, kept frames per simulated second")
     run.add_argument("--no-progress", action="store_true",
                      help="no progress bar (it is only shown when stderr is a terminal)")
+    run.add_argument("--strict", action="store_true",
+                     help="exit with code 4 when the run's status is 'warning' (energy created, a strain bound "
+                          "exceeded, the collision fail-safe, unconverged solves)")
     run.add_argument("--debug", action="store_true", help="print tracebacks of errors")
     run.set_defaults(handler=cmd_run)
 
@@ -250,7 +259,8 @@ def _summary(traj: Trajectory, npz: Path, js: Path) -> str:
             f"unconverged steps {s['unconverged_steps']}")
     a = r.get("adaptive")
     if a:
-        lines.append(f"adaptive     {a['substeps']} substeps, {a['retries']} retries, {a['forced']} forced, "
+        lines.append(f"adaptive     {a['substeps']} substeps, {a['retries']} retries (halved), "
+                     f"{a.get('newton_retries', 0)} redone with Newton iterations, {a['forced']} forced, "
                      f"smallest step {a['min_step']:g} s")
     sl = r.get("strain_limit")
     if sl:
@@ -260,10 +270,13 @@ def _summary(traj: Trajectory, npz: Path, js: Path) -> str:
     if c:
         lines.append(
             f"collision    {', '.join(c['obstacles'])}: {c['contacts']} contacts, {c['mean_candidates']:.0f} "
-            f"candidates/step, max penetration {c['max_penetration']:.3g} m, fail-safe steps {c['failsafe_steps']}, "
+            f"candidates/step, {c.get('mean_solves', 1):.2f} solves/step, max penetration {c['max_penetration']:.3g} m, "
+            f"fail-safe steps {c['failsafe_steps']}, obstacles' work {c['work']:.3g} J, "
             f"{1e3 * c['mean_time_per_step']:.1f} ms/step")
     status = r.get("status")
-    lines.append(f"status       {status}" + (f" ({r['reason']})" if r.get("reason") else ""))
+    lines.append(f"status       {status}" + (f" ({r['reason']})" if status == "diverged" and r.get("reason") else ""))
+    for w in r.get("health") or []:
+        lines.append(f"warning      {w['message']}")
     lines.append(f"trajectory   {npz}")
     lines.append(f"report       {js}")
     return "\n".join(lines)
@@ -333,6 +346,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(_summary(traj, npz, js), flush=True)
     if code == EXIT_DIVERGED:
         print(f"{PROG}: diverged: {_one_line(traj.report.get('reason', ''))}", file=sys.stderr)
+    for w in traj.report.get("health") or []:
+        print(f"{PROG}: warning: {_one_line(w['message'])}", file=sys.stderr)
+    if code == EXIT_OK and args.strict and traj.report.get("status") == "warning":
+        return EXIT_WARNING
     return code
 
 

@@ -8,12 +8,13 @@ import os
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
 from . import diagnostics
 from .adaptive import AdaptiveStats, StepController
+from .constraints import Constraints
 from .errors import DivergenceError, SolverWarning
 from .integrators import make_integrator
 from .io import save_npz
@@ -126,6 +127,7 @@ class Simulator:
         v = np.broadcast_to(np.asarray(scene.data["cloth"]["velocity"], dtype=float), x.shape).copy()
         self.model.apply_pins(x, v, 0.0)
         self.state = State(x, v, 0.0)
+        self._pins = Constraints.of_pins(self.model)
         self.collider: Any = None
         if scene.data["obstacles"]:   # fcl and the collision code are imported only for obstacles
             from .collision import Collider
@@ -136,8 +138,16 @@ class Simulator:
         #: adaptive step control (``simulation.adaptive.enabled``), else None
         self.adaptive: StepController | None = None
         if sim["adaptive"]["enabled"]:
-            scale = diagnostics.energy_scale(self.model, x, v, sim["duration"])
-            self.adaptive = StepController(self.model, sim["adaptive"], scale)
+            self.adaptive = StepController(self.model, sim["adaptive"], self.integrator.implicit)
+        #: energies and strains of states, for the energy balance and the strain bound of every step
+        self.measures = self.adaptive.measures if self.adaptive is not None else diagnostics.StepMeasures(self.model)
+        self._energy_growth = float(sim["adaptive"]["max_energy_growth"])
+        #: whether every step is checked (adaptive stepping, implicit methods, obstacles); else kept frames only
+        self._checks_steps = self.adaptive is not None or self.integrator.implicit or self.collider is not None
+        #: the strain no step may leave: strain limiting's ``max_strain`` if declared, else adaptive's
+        self.strain_bound = float(sim["strain_limit"]["max_strain"] if "strain_limit" in sim
+                                  else sim["adaptive"]["max_strain"])
+        self.health = Health()
         #: Provot strain limiting (``[simulation.strain_limit]``), else None
         self.strain_limiter: Any = None
         if "strain_limit" in sim:
@@ -193,39 +203,66 @@ class Simulator:
         return a
 
     # ------------------------------------------------------------------ stepping
-    def _substep(self, state: State, h: float) -> tuple[State, Any]:
-        """One integrator step of ``h`` seconds from ``state``, then strain limiting if declared.
+    def _substep(self, state: State, h: float, newton: int | None = None) -> tuple[State, Any]:
+        """One integrator step of ``h`` seconds from ``state``, with contacts and strain limiting if declared.
 
-        The unit that adaptive stepping discards and redoes with a smaller ``h``: with obstacles, the resting
-        contacts enter the solve as constraints and the collision response corrects the result, so every
-        substep (and every retry) is collision-free and the adaptive criteria judge the corrected state.
+        The unit that adaptive stepping discards and redoes (with Newton iterations, or a smaller ``h``).
+        With obstacles and an implicit method the contacts are constraints of the solve
+        (:meth:`Collider.step`); an explicit step is corrected by the geometric response afterwards. Either
+        way every substep (and every retry) is collision-free and the adaptive criteria judge the
+        corrected state. ``newton``: Newton iterations asked for (None: the solver's setting).
         """
-        if self.collider is not None:
-            self.collider.constrain(self.integrator, state)
-        new, info = self.integrator.step(state, h)
-        if self.collider is not None:
-            work = self.collider.constraint_work(self.integrator, state.v, new.v)
+        col = self.collider
+        if col is not None and self.integrator.implicit:
+            return col.step(self.integrator, state, h, self._pins, self.strain_limiter, newton)
+        if self.integrator.implicit:
+            new, info = self.integrator.step(state, h, self._pins, newton=newton)
+        else:
+            new, info = self.integrator.step(state, h)
         if self.strain_limiter is not None:
             self.strain_limiter.apply(new, h)
-        if self.collider is not None and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
+        if col is not None and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
             # last, so that nothing after it moves the cloth into an obstacle; corrects new.x, new.v in place
-            # (BDF2 keeps them as history)
-            e_before = diagnostics.total_energy(self.model, new.x, new.v)
-            info.collision = self.collider.respond(state, new, h, self.integrator)
-            info.collision.work = work + diagnostics.total_energy(self.model, new.x, new.v) - e_before
+            v_before = new.v.copy()
+            info.collision = col.respond(state, new, h)
+            info.collision.work = col._impulse_work(v_before, new)
         return new, info
 
     def _advance(self) -> Any:
         with np.errstate(over="ignore", invalid="ignore"):   # a blow-up is reported below, not warned
             if self.adaptive is None:
-                new, info = self._substep(self.state, self.dt)
+                old = self.state
+                new, info = self._substep(old, self.dt)
+                if self._checks_steps and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
+                    work = info.collision.work if info.collision is not None else 0.0
+                    gain, e_step = self.measures.balance(old, new, self.dt, work)
+                    if gain > self._energy_growth * e_step:
+                        self.health.add("energy", new.t, gain)
             else:
                 new, info = self.adaptive.advance(self.state, self.dt, self._substep)
         if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
             raise _NonFinite(f"non-finite state at t={new.t:.6g} s")
+        if self._checks_steps:
+            self._check_strain(self.state, new)
         self.state = new
         self.last_step = info
         return info
+
+    def _check_strain(self, old: State, s: State) -> None:
+        """Record a step that left a spring beyond the scene's strain bound (strain limiting's ``max_strain`` if
+        declared, else adaptive's) longer than it found it (a spring relaxing from a stretch it was given is not
+        the step's doing)."""
+        strain = self.measures(s)[3]
+        if strain is None or not len(strain):
+            return
+        top = float(strain.max())
+        self.health.max_strain = max(self.health.max_strain, top)
+        bound = self.strain_bound * (1.0 + STRAIN_TOLERANCE) + STRAIN_TOLERANCE
+        if top > bound:
+            before = self.measures(old)[3]
+            grew = (strain > bound) & (strain > before)
+            if np.any(grew):
+                self.health.add("strain", s.t, float(strain[grew].max()))
 
     def step(self, n: int = 1) -> None:
         """Advance ``n`` steps of ``dt``.
@@ -245,12 +282,16 @@ class Simulator:
                     raise DivergenceError(str(exc)) from None
 
     def run(self, duration: float | None = None, frame_rate: float | None = None,
-            progress: bool = False) -> Trajectory:
+            progress: bool = False, on_frame: Callable[[State], None] | None = None) -> Trajectory:
         """Simulate ``duration`` seconds from the current state, keeping frames.
 
         Frames are kept at ``t0 + k / frame_rate`` for ``k = 0, 1, ...`` up to and
         including ``t0 + duration`` (at the nearest step when ``dt`` does not
-        divide them; every step when ``frame_rate >= 1/dt``).
+        divide them; every step when ``frame_rate >= 1/dt``); ``on_frame(state)``, if given, is called
+        with the state (positions, velocities, time; not to be modified) at every kept frame. The report's
+        ``status`` is ``"ok"`` when every step met the energy balance and the
+        strain bound, ``"warning"`` otherwise (``report["health"]`` says which
+        criterion, when first and by how much).
 
         Raises
         ------
@@ -269,170 +310,271 @@ class Simulator:
         duration = _number("simulation.duration", duration, lo=0.0, lo_open=True)
         frame_rate = _number("simulation.frame_rate", frame_rate, lo=0.0, lo_open=True)
         _run_length({"dt": self.dt, "duration": duration, "frame_rate": frame_rate})
-        factor = sim.get("divergence_factor", diagnostics.DEFAULT_DIVERGENCE_FACTOR)
-        dt = self.dt
-        n_steps = max(1, int(round(duration / dt)))
-        keep = _frame_steps(n_steps, dt, duration, frame_rate)
-        model = self.model
-        e0 = diagnostics.measure(model, self.state.x, self.state.v)
-        scale = diagnostics.energy_scale(model, self.state.x, self.state.v, n_steps * dt)
-        bound = factor * scale
-        if self.adaptive is not None:   # the energy criterion uses this run's scale; counters start afresh
-            self.adaptive.energy_scale = scale
-            self.adaptive.stats = AdaptiveStats()
-            self.adaptive.window_min_step = math.inf
-        if self.strain_limiter is not None:
-            self.strain_limiter.reset_stats()
-
-        pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity))
-        pin_work, pin_p = 0.0, diagnostics.pin_power(model, self.state.x, self.state.v, self.state.t)
-        frames: dict[str, list[float]] = {k: [] for k in (
-            "time", "kinetic", "gravity", "springs", "potential", "total", "pin_work", "max_strain",
-            "solver_iterations", "solver_residual", "min_step", "t_assembly", "t_setup", "t_solve", "t_other")}
-        col = _CollisionTotals() if self.collider is not None else None
-        if col is not None:
-            frames["t_collision"] = []
-        positions: list[np.ndarray] = []
-        totals = {"steps": 0, "iterations": 0, "max_iterations": 0, "max_residual": 0.0, "unconverged_steps": 0}
-        acc = {"it": 0, "res": 0.0, "t_assembly": 0.0, "t_setup": 0.0, "t_solve": 0.0, "t_other": 0.0}
-
-        def keep_frame(m: dict[str, float]) -> None:
-            positions.append(self.state.x.copy())
-            frames["time"].append(self.state.t)
-            for k in ("kinetic", "gravity", "springs", "potential", "total", "max_strain"):
-                frames[k].append(m[k])
-            frames["pin_work"].append(pin_work)
-            frames["solver_iterations"].append(acc["it"])
-            frames["solver_residual"].append(acc["res"])
-            frames["min_step"].append(dt)
-            if self.adaptive is not None and math.isfinite(self.adaptive.window_min_step):
-                frames["min_step"][-1] = self.adaptive.window_min_step
-                self.adaptive.window_min_step = math.inf
-            for k in ("t_assembly", "t_setup", "t_solve", "t_other"):
-                frames[k].append(acc[k])
-                acc[k] = 0.0
-            if col is not None:
-                frames["t_collision"].append(col.frame_time)
-                col.frame_time = 0.0
-            acc["it"], acc["res"] = 0, 0.0
-
-        status, reason = "ok", ""
-        wall0 = time.perf_counter()
-        keep_frame(e0)
+        rec = _Recorder(self, duration, frame_rate, sim.get("divergence_factor", diagnostics.DEFAULT_DIVERGENCE_FACTOR),
+                        on_frame)
         bar = None
         if progress:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=n_steps, unit="step", desc=f"{self.integrator_name} dt={dt:g}", leave=False)
-        next_frame = 1
-        stack = contextlib.ExitStack()
+            bar = tqdm(total=rec.n_steps, unit="step", desc=f"{self.integrator_name} dt={self.dt:g}", leave=False)
         try:
-            stack.enter_context(_blas_threads(self.blas_threads))
-            for s in range(1, n_steps + 1):
-                ts = time.perf_counter()
-                try:
-                    info = self._advance()
-                except _NonFinite as exc:
-                    status, reason = "diverged", f"{exc} (step {s} of {n_steps})"
-                    break
-                if pins_move:   # trapezoidal work of the pins over this step
-                    p_new = diagnostics.pin_power(model, self.state.x, self.state.v, self.state.t)
-                    pin_work += 0.5 * dt * (pin_p + p_new)
-                    pin_p = p_new
-                totals["steps"] += 1
-                totals["iterations"] += info.iterations
-                totals["max_iterations"] = max(totals["max_iterations"], info.iterations)
-                totals["max_residual"] = max(totals["max_residual"], info.residual)
-                totals["unconverged_steps"] += int(not info.converged)
-                acc["it"] = max(acc["it"], info.iterations)
-                acc["res"] = max(acc["res"], info.residual)
-                acc["t_assembly"] += info.t_assembly
-                acc["t_setup"] += info.t_setup
-                acc["t_solve"] += info.t_solve
-                if col is not None:
-                    col.add(info.collision)
-                    acc["t_other"] -= info.collision.t_collision
-                if next_frame < len(keep) and s == keep[next_frame]:
-                    m = diagnostics.measure(model, self.state.x, self.state.v)
-                    growth = m["total"] - e0["total"] - pin_work - (col.work if col is not None else 0.0)
-                    if growth > bound:
-                        status = "diverged"
-                        reason = (f"energy grew by {growth:.3g} J (beyond the pins' and obstacles' work) "
-                                  f"at t={self.state.t:.6g} s "
-                                  f"(step {s} of {n_steps}), beyond the bound {bound:.3g} J "
-                                  f"= {factor:g} x energy scale {scale:.3g} J")
+            with _blas_threads(self.blas_threads):
+                for s in range(1, rec.n_steps + 1):
+                    ts = time.perf_counter()
+                    try:
+                        info = self._advance()
+                    except _NonFinite as exc:
+                        rec.diverge(f"{exc} (step {s} of {rec.n_steps})")
                         break
-                    acc["t_other"] += time.perf_counter() - ts - info.t_assembly - info.t_setup - info.t_solve
-                    keep_frame(m)
-                    next_frame += 1
-                else:
-                    acc["t_other"] += time.perf_counter() - ts - info.t_assembly - info.t_setup - info.t_solve
-                if bar is not None:
-                    bar.update(1)
+                    if not rec.after_step(s, info, ts):
+                        break
+                    if bar is not None:
+                        bar.update(1)
         finally:
-            stack.close()
             if bar is not None:
                 bar.close()
-        wall = time.perf_counter() - wall0
+        traj = rec.trajectory()
+        if traj.report["status"] == "diverged":
+            raise DivergenceError(traj.report["reason"], traj)
+        return traj
 
-        report = {
+
+#: Relative slack of the strain bound (the solver's and the limiter's tolerances).
+STRAIN_TOLERANCE = 1e-3
+
+#: Report criteria of the run health, in the order they are listed.
+HEALTH_CRITERIA: tuple[str, ...] = ("energy", "strain", "failsafe", "solver")
+
+
+class Health:
+    """What went wrong in a run, per criterion: how often, when first, the worst amount.
+
+    ``energy``: a step gained energy beyond the balance (J); ``strain``: a step ended with a spring beyond
+    the scene's strain bound (the strain); ``failsafe``: the collision fail-safe froze vertices (how many);
+    ``solver``: a linear solve did not reach its tolerance (the residual).
+    """
+
+    UNITS = {"energy": "J", "strain": "", "failsafe": "vertices", "solver": ""}
+
+    def __init__(self) -> None:
+        self.events: dict[str, dict[str, float]] = {}
+        self.max_strain = 0.0
+
+    def add(self, criterion: str, t: float, amount: float, count: int = 1) -> None:
+        ev = self.events.setdefault(criterion, {"count": 0, "first_time": float(t), "worst": float(amount)})
+        ev["count"] += count
+        ev["first_time"] = min(ev["first_time"], float(t))
+        ev["worst"] = max(ev["worst"], float(amount))
+
+    def messages(self, strain_bound: float, energy_growth: float) -> list[dict[str, Any]]:
+        what = {
+            "energy": lambda e: (f"energy created: {e['count']} steps gained more than the pins', wind's and "
+                                 f"obstacles' work plus {energy_growth:g} x the step's energy, first at "
+                                 f"t={e['first_time']:.4g} s, at worst {e['worst']:.3g} J"),
+            "strain": lambda e: (f"strain bound {strain_bound:g} exceeded in {e['count']} steps, first at "
+                                 f"t={e['first_time']:.4g} s, at worst {e['worst']:.3g}"),
+            "failsafe": lambda e: (f"collision fail-safe fired in {e['count']} steps (vertices frozen to an "
+                                   f"obstacle), first at t={e['first_time']:.4g} s"),
+            "solver": lambda e: (f"linear solve unconverged in {e['count']} steps, first at "
+                                 f"t={e['first_time']:.4g} s, largest residual {e['worst']:.3g}"),
+        }
+        return [{"criterion": c, **self.events[c], "message": what[c](self.events[c])}
+                for c in HEALTH_CRITERIA if c in self.events]
+
+
+class _Recorder:
+    """Kept frames, run totals and the report of one :meth:`Simulator.run`."""
+
+    FRAME_KEYS = ("time", "kinetic", "gravity", "springs", "potential", "total", "pin_work", "max_strain",
+                  "solver_iterations", "solver_residual", "min_step", "t_assembly", "t_setup", "t_solve", "t_other")
+
+    def __init__(self, sim: "Simulator", duration: float, frame_rate: float, factor: float,
+                 on_frame: Callable[[State], None] | None = None) -> None:
+        self.sim = sim
+        self.on_frame = on_frame
+        self.duration, self.frame_rate, self.factor = duration, frame_rate, factor
+        model, st = sim.model, sim.state
+        self.dt = sim.dt
+        self.n_steps = max(1, int(round(duration / self.dt)))
+        self.keep = _frame_steps(self.n_steps, self.dt, duration, frame_rate)
+        self.e0 = diagnostics.measure(model, st.x, st.v)
+        self.scale = diagnostics.energy_scale(model, st.x, st.v)
+        self.bound = factor * self.scale
+        sim.health = Health()
+        if sim.adaptive is not None:   # counters start afresh
+            sim.adaptive.stats = AdaptiveStats()
+            sim.adaptive.window_min_step = math.inf
+        if sim.strain_limiter is not None:
+            sim.strain_limiter.reset_stats()
+        self.pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity))
+        self.pin_work, self.pin_p = 0.0, diagnostics.pin_power(model, st.x, st.v, st.t)
+        self.frames: dict[str, list[float]] = {k: [] for k in self.FRAME_KEYS}
+        self.col = _CollisionTotals() if sim.collider is not None else None
+        if self.col is not None:
+            self.frames["t_collision"] = []
+        self.positions: list[np.ndarray] = []
+        self.totals = {"steps": 0, "iterations": 0, "max_iterations": 0, "max_residual": 0.0,
+                       "unconverged_steps": 0, "solves": 0, "max_newton": 0}
+        self.acc = {"it": 0, "res": 0.0, "t_assembly": 0.0, "t_setup": 0.0, "t_solve": 0.0, "t_other": 0.0}
+        self.status, self.reason = "ok", ""
+        self.next_frame = 1
+        self.wall0 = time.perf_counter()
+        self.keep_frame(self.e0)
+
+    def keep_frame(self, m: dict[str, float]) -> None:
+        sim, fr, acc = self.sim, self.frames, self.acc
+        if self.on_frame is not None:
+            self.on_frame(sim.state)
+        self.positions.append(sim.state.x.copy())
+        fr["time"].append(sim.state.t)
+        for k in ("kinetic", "gravity", "springs", "potential", "total", "max_strain"):
+            fr[k].append(m[k])
+        fr["pin_work"].append(self.pin_work)
+        fr["solver_iterations"].append(acc["it"])
+        fr["solver_residual"].append(acc["res"])
+        fr["min_step"].append(self.dt)
+        ad = sim.adaptive
+        if ad is not None and math.isfinite(ad.window_min_step):
+            fr["min_step"][-1] = ad.window_min_step
+            ad.window_min_step = math.inf
+        for k in ("t_assembly", "t_setup", "t_solve", "t_other"):
+            fr[k].append(acc[k])
+            acc[k] = 0.0
+        if self.col is not None:
+            fr["t_collision"].append(self.col.frame_time)
+            self.col.frame_time = 0.0
+        acc["it"], acc["res"] = 0, 0.0
+
+    def diverge(self, reason: str) -> None:
+        self.status, self.reason = "diverged", reason
+
+    def after_step(self, s: int, info: Any, ts: float) -> bool:
+        """Book step ``s``; keep a frame when due. False when the run diverged."""
+        sim, model, tot, acc = self.sim, self.sim.model, self.totals, self.acc
+        if self.pins_move:   # trapezoidal work of the pins over this step
+            p_new = diagnostics.pin_power(model, sim.state.x, sim.state.v, sim.state.t)
+            self.pin_work += 0.5 * self.dt * (self.pin_p + p_new)
+            self.pin_p = p_new
+        tot["steps"] += 1
+        tot["iterations"] += info.iterations
+        tot["max_iterations"] = max(tot["max_iterations"], info.iterations)
+        tot["max_residual"] = max(tot["max_residual"], info.residual)
+        tot["solves"] += info.solves
+        tot["max_newton"] = max(tot["max_newton"], info.newton_iterations)
+        if not info.converged:
+            tot["unconverged_steps"] += 1
+            sim.health.add("solver", sim.state.t, info.residual)
+        acc["it"] = max(acc["it"], info.iterations)
+        acc["res"] = max(acc["res"], info.residual)
+        acc["t_assembly"] += info.t_assembly
+        acc["t_setup"] += info.t_setup
+        acc["t_solve"] += info.t_solve
+        if self.col is not None:
+            self.col.add(info.collision)
+            acc["t_other"] -= info.collision.t_collision
+            if info.collision.failsafe:
+                sim.health.add("failsafe", sim.state.t, info.collision.failsafe)
+        frame = self.next_frame < len(self.keep) and s == self.keep[self.next_frame]
+        m = diagnostics.measure(model, sim.state.x, sim.state.v) if frame else None
+        acc["t_other"] += time.perf_counter() - ts - info.t_assembly - info.t_setup - info.t_solve
+        if m is None:
+            return True
+        growth = m["total"] - self.e0["total"] - self.pin_work - (self.col.work if self.col is not None else 0.0)
+        if growth > self.bound:
+            self.diverge(f"energy grew by {growth:.3g} J (beyond the pins' and obstacles' work) "
+                         f"at t={sim.state.t:.6g} s (step {s} of {self.n_steps}), beyond the bound {self.bound:.3g} J "
+                         f"= {self.factor:g} x energy scale {self.scale:.3g} J")
+            return False
+        if not sim._checks_steps and m["max_strain"] > sim.strain_bound * (1 + STRAIN_TOLERANCE) + STRAIN_TOLERANCE:
+            sim.health.add("strain", sim.state.t, m["max_strain"])
+        self.keep_frame(m)
+        self.next_frame += 1
+        return True
+
+    def trajectory(self) -> Trajectory:
+        sim = self.sim
+        report = self.report(time.perf_counter() - self.wall0)
+        return Trajectory(np.array(self.positions), np.array(self.frames["time"]), sim.model.faces.copy(), report)
+
+    def report(self, wall: float) -> dict[str, Any]:
+        sim, model, fr, tot = self.sim, self.sim.model, self.frames, self.totals
+        health = sim.health
+        if sim.adaptive is not None:
+            for c, ev in sim.adaptive.stats.forced_events.items():
+                if c in ("energy", "strain"):
+                    health.add(c, ev["first_time"], ev["worst"], int(ev["count"]))
+        warnings_ = health.messages(sim.strain_bound, sim._energy_growth)
+        status, reason = self.status, self.reason
+        if status == "ok" and warnings_:
+            status, reason = "warning", "; ".join(w["message"] for w in warnings_)
+        report: dict[str, Any] = {
             "status": status,
             "reason": reason,
-            "integrator": self.integrator_name,
-            "dt": dt,
-            "duration": duration,
-            "frame_rate": frame_rate,
+            "health": warnings_,
+            "integrator": sim.integrator_name,
+            "dt": self.dt,
+            "duration": self.duration,
+            "frame_rate": self.frame_rate,
             "effects": list(model.effect_names),
             "n_vertices": model.n,
             "n_springs": {k: sl.stop - sl.start for k, sl in model.springs.kinds.items()} if model.springs else {},
             "n_pinned": int(len(model.pinned)),
             "total_mass": model.total_mass,
-            "steps": totals["steps"],
+            "steps": tot["steps"],
             "solver": None,
-            "divergence_bound": {"factor": factor, "energy_scale": scale, "bound": bound},
+            "divergence_bound": {"factor": self.factor, "energy_scale": self.scale, "bound": self.bound},
+            "energy_balance": {"max_energy_growth": sim._energy_growth, "checked": "every step" if sim._checks_steps
+                               else "kept frames (divergence bound only)"},
             "wall_time": wall,
-            "timing": {k: float(np.sum(frames[k])) for k in ("t_assembly", "t_setup", "t_solve", "t_other")},
-            "frames": frames,
+            "timing": {k: float(np.sum(fr[k])) for k in ("t_assembly", "t_setup", "t_solve", "t_other")},
+            "frames": fr,
             "adaptive": None,
             "strain_limit": None,
         }
-        if self.adaptive is not None:
-            a, st = self.adaptive, self.adaptive.stats
+        if sim.adaptive is not None:
+            a, st = sim.adaptive, sim.adaptive.stats
             report["adaptive"] = {
                 "max_halvings": a.max_halvings, "grow_after": a.grow_after, "max_strain": a.max_strain,
                 "max_energy_growth": a.max_energy_growth, "retry_unconverged": a.retry_unconverged,
-                "substeps": st.substeps, "retries": st.retries, "forced": st.forced,
-                "failures": dict(st.failures), "min_step": st.min_step if math.isfinite(st.min_step) else dt,
+                "newton_iterations": a.newton_iterations,
+                "substeps": st.substeps, "retries": st.retries, "newton_retries": st.newton_retries,
+                "forced": st.forced, "failures": dict(st.failures),
+                "min_step": st.min_step if math.isfinite(st.min_step) else self.dt,
+                "substeps_per_step": st.substeps / max(tot["steps"], 1),
             }
-        if self.strain_limiter is not None:
-            report["strain_limit"] = {"max_strain": self.strain_limiter.max_strain,
-                                      "iterations": self.strain_limiter.iterations, **self.strain_limiter.stats}
-        if col is not None:
-            report["timing"]["t_collision"] = col.time
-            report["collision"] = col.report(self.collider)
-        if self.integrator.implicit:
-            n = max(totals["steps"], 1)
+        if sim.strain_limiter is not None:
+            stats = dict(sim.strain_limiter.stats)
+            if sim._checks_steps:   # after the whole step (collisions included), not only after limiting
+                stats["max_strain_after"] = health.max_strain
+            report["strain_limit"] = {"max_strain": sim.strain_limiter.max_strain,
+                                      "iterations": sim.strain_limiter.iterations, **stats}
+        if self.col is not None:
+            report["timing"]["t_collision"] = self.col.time
+            report["collision"] = self.col.report(sim.collider)
+        if sim.integrator.implicit:
+            n = max(tot["steps"], 1)
+            integ = sim.integrator
             report["solver"] = {
-                "tolerance": self.integrator.tolerance,
-                "max_iterations_allowed": self.integrator.max_iterations,
-                "preconditioner": self.integrator.precond.name,
+                "tolerance": integ.tolerance,
+                "max_iterations_allowed": integ.max_iterations,
+                "preconditioner": integ.precond.name,
                 # which implementation ran the preconditioned CG: "numba" (the fast extra) or "numpy"
-                "accelerator": getattr(self.integrator.precond, "accelerator", "numpy"),
-                "mean_iterations": totals["iterations"] / n,
-                "max_iterations": totals["max_iterations"],
-                "max_residual": totals["max_residual"],
-                "unconverged_steps": totals["unconverged_steps"],
+                "accelerator": getattr(integ.precond, "accelerator", "numpy"),
+                "newton_iterations": integ.newton_iterations,
+                "mean_iterations": tot["iterations"] / n,
+                "max_iterations": tot["max_iterations"],
+                "max_residual": tot["max_residual"],
+                "unconverged_steps": tot["unconverged_steps"],
+                "mean_solves": tot["solves"] / n,
+                "max_newton_iterations": tot["max_newton"],
             }
-            if totals["unconverged_steps"]:
+            if tot["unconverged_steps"]:
                 warnings.warn(
-                    f"the linear solver did not reach tolerance {self.integrator.tolerance:g} in "
-                    f"{totals['unconverged_steps']} of {totals['steps']} steps (max residual "
-                    f"{totals['max_residual']:.3g}); raise solver.max_iterations or reduce dt",
-                    SolverWarning, stacklevel=2)
-        traj = Trajectory(np.array(positions), np.array(frames["time"]), model.faces.copy(), report)
-        if status == "diverged":
-            raise DivergenceError(reason, traj)
-        return traj
+                    f"the linear solver did not reach tolerance {integ.tolerance:g} in "
+                    f"{tot['unconverged_steps']} of {tot['steps']} steps (max residual "
+                    f"{tot['max_residual']:.3g}); raise solver.max_iterations or reduce dt",
+                    SolverWarning, stacklevel=4)
+        return report
 
 
 class _CollisionTotals:
@@ -445,6 +587,7 @@ class _CollisionTotals:
         self.time = self.frame_time = 0.0
         self.toi = math.inf
         self.work = 0.0
+        self.solves = self.fallback = 0
 
     def add(self, c: Any) -> None:
         self.steps += 1
@@ -457,6 +600,8 @@ class _CollisionTotals:
         self.time += c.t_collision
         self.frame_time += c.t_collision
         self.work += c.work
+        self.solves += c.solves
+        self.fallback += c.fallback
         if c.toi == c.toi:   # not nan
             self.toi = min(self.toi, c.toi)
 
@@ -474,6 +619,10 @@ class _CollisionTotals:
             "max_penetration": self.max_penetration,
             "failsafe_steps": self.failsafe_steps,
             "failsafe_vertices": self.failsafe_vertices,
+            # implicit methods: linear solves per step (one, plus one per round that found new contacts, plus
+            # Newton iterations), and the corrections the geometric response made after them
+            "mean_solves": self.solves / n,
+            "fallback_corrections": self.fallback,
             "work": self.work,
             "time": self.time,
             "mean_time_per_step": self.time / n,

@@ -90,8 +90,13 @@ class StrainLimiter:
         """Zero :attr:`stats` (a run reports its own)."""
         self.stats = {"steps_limited": 0, "springs_limited": 0, "max_iterations": 0, "max_strain_after": 0.0}
 
-    def apply(self, new: State, h: float) -> int:
-        """Limit the springs of ``new`` in place (positions, then velocities); returns the passes made."""
+    def apply(self, new: State, h: float, planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> int:
+        """Limit the springs of ``new`` in place (positions, then velocities); returns the passes made.
+
+        ``planes`` = ``(idx, n, offset)``: contact planes ``n . x_idx >= offset`` (the collision stage's) that
+        every pass keeps: a vertex a correction moved below its plane is put back on it (as position-based
+        dynamics interleaves collision constraints), so limiting never pushes the cloth into an obstacle.
+        """
         x = new.x
         if not len(self.i) or not (np.all(np.isfinite(x)) and np.all(np.isfinite(new.v))):
             return 0
@@ -120,6 +125,10 @@ class StrainLimiter:
                 corr = (np.where(ok, e, 0.0) / np.maximum(l, np.finfo(float).tiny))[:, None] * d   # e n
                 x[iv] += self.share_i[cls][:, None] * corr   # no vertex twice in a class: plain indexing
                 x[jv] -= self.share_j[cls][:, None] * corr
+            if planes is not None:
+                ci, cn, co = planes
+                below = co - np.einsum("ij,ij->i", cn, x[ci])
+                x[ci] += np.maximum(below, 0.0)[:, None] * cn
         if x_in is not None:
             new.v += (x - x_in) / h
             self.stats["steps_limited"] += 1

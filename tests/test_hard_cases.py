@@ -180,7 +180,10 @@ def test_yanked_pin_run_is_not_reported_diverged():
     except ic.DivergenceError as err:
         assert np.all(np.isfinite(sim.positions))          # the state was finite throughout
         pytest.fail(f"a finite, energy-consistent run was reported diverged: {err.reason}")
-    assert traj.report["status"] == "ok"
+    # not diverged; but the pin stretches the cloth ~20x its width, far beyond any material, and the report
+    # says so (the only warning)
+    assert traj.report["status"] == "warning"
+    assert [w["criterion"] for w in traj.report["health"]] == ["strain"]
 
 
 # --------------------------------------------------------------------------- explicit blow-up
@@ -287,7 +290,7 @@ def test_pin_teleported_ten_metres():
     assert f["springs"][-1] < 1e-3 * f["springs"][0] and f["max_strain"][-1] < 0.5
     assert f["kinetic"][-1] < 1e-6 * f["springs"][0]
     assert np.linalg.norm(sim.positions - x[p], axis=1).max() < 1.5 * np.sqrt(2)
-    assert traj.report["adaptive"]["retries"] > 0
+    assert traj.report["adaptive"]["retries"] + traj.report["adaptive"]["newton_retries"] > 0
 
 
 @pytest.mark.parametrize("integrator,dt,tol", [("forward_euler", 1e-4, 1e-12), ("symplectic_euler", 1e-4, 1e-12),

@@ -53,18 +53,27 @@ from typing import Any
 
 import numpy as np
 
-from . import broadphase, ccd
+from ..constraints import Constraints
+from ..integrators.base import StepInfo
+from . import broadphase, ccd, contacts
 from .features import FeatureStages, edge_minimum
 from .mesh import MeshStages
-from .response import SETTLE_FRACTION, impulse
+from .response import PROXIMITY_SLACK, SETTLE_FRACTION, impulse
 from .shapes import MeshShape, Plane, RigidMotion, Shape, build, local_aabb
 
 #: A vertex path that comes within this fraction of the thickness counts as an impact.
 IMPACT_FRACTION = 0.5
 #: Passes of the fail-safe (each freezes the offenders and their neighbours).
 FAILSAFE_PASSES = 4
-#: A vertex within this multiple of the thickness after the response is in resting contact.
-CONTACT_BAND = 1.05
+#: A held contact stays held while its vertex is within this multiple of the thickness of the obstacle.
+CONTACT_BAND = 1.25
+#: A contact whose impulse pulls its vertex towards the obstacle by more than this change of velocity (m/s)
+#: is released within the step (and the step solved again); lighter pulls are released from the next step on.
+PULL_SPEED = 0.01
+#: New contacts violated by at most this fraction of the thickness do not call for another solve: they are
+#: held from the next step on, and the geometric response keeps them out in this one.
+RESOLVE_FRACTION = 0.1
+
 
 
 @dataclass
@@ -98,12 +107,18 @@ class CollisionInfo:
     max_penetration : float
         Largest depth of a cloth vertex inside an obstacle after the response, m.
     t_collision : float
-        Wall time of the collision stage, s.
+        Wall time of the collision stage (without the solves), s.
+    solves : int
+        Linear solves of the step (implicit methods: one, plus one per round that found new contacts).
+    fallback : int
+        Corrections the geometric response made after the solves (implicit methods): what the
+        constrained solves left.
     work : float
-        Energy the obstacles gave the cloth in the step, J: the work of the resting-contact constraints in the
-        solve (:meth:`Collider.constraint_work`) plus the energy change of the response (kinetic + gravity +
-        springs after it minus before it), i.e. the work of moving obstacles less what inelastic contact and
-        friction dissipated. The divergence check and adaptive stepping count it like the pins' work.
+        Work the obstacles did on the cloth in the step, J, computed from what they did: each contact's
+        impulse times the obstacle's velocity at the contact point (normal impulse of the solve, friction
+        force over the step, the fallback response's velocity changes), like the pins' work. Zero for
+        obstacles that do not move. The energy balance of every step counts it as external work; the
+        energy the contact treatment itself creates or removes is not in it.
     """
 
     candidates: int = 0
@@ -115,6 +130,8 @@ class CollisionInfo:
     max_penetration: float = 0.0
     t_collision: float = 0.0
     work: float = 0.0
+    solves: int = 0
+    fallback: int = 0
 
     def absorb(self, other: "CollisionInfo", accepted: bool = True) -> None:
         """Add a later substep's figures (adaptive stepping): counts summed, extremes kept, time summed.
@@ -133,6 +150,13 @@ class CollisionInfo:
         self.failsafe += other.failsafe
         self.max_penetration = max(self.max_penetration, other.max_penetration)
         self.work += other.work
+        self.solves += other.solves
+        self.fallback += other.fallback
+
+
+def _describe(spec: dict[str, Any]) -> str:
+    keys = [k for k in ("shape", "center", "point", "radius", "size", "height", "path") if k in spec]
+    return "{" + ", ".join(f"{k} = {spec[k]!r}" for k in keys) + "}"
 
 
 def cloth_edges(faces: np.ndarray) -> np.ndarray:
@@ -164,96 +188,339 @@ class Collider(FeatureStages, MeshStages):
         for spec in obstacles:
             shape, motion = build(spec)
             self.obstacles.append(Obstacle(shape, motion, float(spec["friction"]), spec))
+        self._mu = np.array([ob.friction for ob in self.obstacles])
         self.faces = np.asarray(model.faces, dtype=np.int64)
         self.edges = cloth_edges(self.faces)
         self.inv_mass = model.inv_masses.copy()
         self.inv_mass[model.pinned] = 0.0
         self.free = self.inv_mass > 0
-        n = model.n
-        # resting contacts for the next solve: vertex, world normal, obstacle normal velocity, friction
-        self.contact_idx = np.zeros(0, dtype=np.int64)
-        self.contact_n = np.zeros((0, 3))
-        self.contact_un = np.zeros(0)
-        self.contact_obstacle = np.zeros(0, dtype=np.int64)
-        self._constrained = np.zeros(0, dtype=np.int64)
-        self._n = n
+        self._n = model.n
+        self._check_start(model.rest_positions, 0.0)
+        #: (state, contacts held at its end) of the last steps: a step from that state starts with them
+        self._carry: list[tuple[Any, contacts.Planes]] = []
+        #: the last attempt at a step: (state, h, its contacts, its end velocities), for a nonlinear redo
+        self._attempt: tuple[Any, float, contacts.Planes, np.ndarray] | None = None
+
+    def _check_start(self, x: np.ndarray, t: float) -> None:
+        """A :class:`SceneError` naming the obstacle if cloth vertices start inside it, deeper than the thickness."""
+        from ..errors import SceneError
+
+        for k, ob in enumerate(self.obstacles):
+            depth = self.depths(k, x, t)
+            bad = (depth > self.thickness) & self.free    # pins are the user's: never moved, never checked
+            if np.any(bad):
+                raise SceneError(
+                    f"obstacles[{k}]: {int(bad.sum())} cloth vertices start inside it (the deepest "
+                    f"{1e3 * float(depth.max()):.3g} mm, more than the thickness {self.thickness:g} m; the first is "
+                    f"vertex {int(np.flatnonzero(bad)[0])}): move the obstacle or the cloth apart, got "
+                    f"{_describe(ob.spec)}")
+
+    def depths(self, k: int, x: np.ndarray, t: float) -> np.ndarray:
+        """Depth (m, > 0 inside, 0 outside) of world points ``x`` inside obstacle ``k`` at time ``t``.
+
+        Primitive shapes: minus the signed distance. Meshes: for a closed (watertight) mesh, the distance to
+        the nearest face of the points whose winding number says they are inside; an open mesh has no inside
+        (0 everywhere).
+        """
+        ob = self.obstacles[k]
+        p = ob.motion.to_local(x, t)
+        if not isinstance(ob.shape, MeshShape):
+            return np.maximum(-ob.shape.distance(p), 0.0)
+        return ob.shape.depth(p)
+
+    @property
+    def held(self) -> np.ndarray:
+        """Vertices held by a contact at the end of the last step (carried into the next one), (K,) int."""
+        return self._carry[-1][1].idx.copy() if self._carry else np.zeros(0, dtype=np.int64)
 
     def reset(self) -> None:
-        """Forget the resting contacts (called when the state is assigned)."""
-        self.contact_idx = np.zeros(0, dtype=np.int64)
-        self.contact_n = np.zeros((0, 3))
-        self.contact_un = np.zeros(0)
-        self.contact_obstacle = np.zeros(0, dtype=np.int64)
-        self._constrained = np.zeros(0, dtype=np.int64)
+        """Forget the contacts carried from step to step (called when the state is assigned)."""
+        self._carry = []
+        self._attempt = None
 
-    def constraint_work(self, integrator: Any, v0: np.ndarray, v1: np.ndarray) -> float:
-        """Work of the resting-contact constraints over the last solve, J: ``sum_i J_i . (v0_i + v1_i) / 2``.
+    # ------------------------------------------------------------------ implicit step with contacts
+    def step(self, integrator: Any, state: Any, h: float, pins: Constraints,
+             limiter: Any = None, newton: int | None = None) -> tuple[Any, Any]:
+        """One implicit step of ``h`` from the collision-free ``state`` with contacts as constraints of the solve.
 
-        ``J`` is the impulse the constraints applied (``integrator.constraint_impulse``, N*s) on the vertices
-        this collider constrained (pinned vertices' impulses are the pins' work, counted apart); ``v0``, ``v1``
-        the velocities before and after the solve, m/s. Non-zero when the obstacle moves (it prescribes the
-        normal velocity) or the contact holds the cloth against its weight while it slides.
+        Solve, detect, constrain, solve again: the step is solved with the contacts carried from the
+        previous step (:meth:`_carried`); contact detection on the proposed step (:func:`contacts.detect`)
+        adds every vertex that would come nearer than the thickness to an obstacle, and Coulomb friction
+        decides which contacts stick and which slide (:meth:`_friction`); while either changes, the step is
+        solved again from the same state (warm-started), at most ``collision.max_iterations`` solves,
+        each with ``newton`` Newton iterations (None: the solver's setting). A vertex that reached an
+        obstacle in the step leaves it with the obstacle's normal velocity less ``restitution`` times its
+        approach speed. ``limiter`` (strain limiting) then runs with the contact planes held, and the
+        geometric response (:meth:`respond`, without friction) corrects what the solves left, counted as
+        fallback corrections.
+
+        Returns the new state and the step's :class:`~implicit_cloth.integrators.StepInfo`, whose
+        ``collision`` is this stage's :class:`CollisionInfo`.
         """
-        J = getattr(integrator, "constraint_impulse", None)
-        idx = self._constrained
-        if J is None or not len(idx):
+        t_start = time.perf_counter()
+        t1 = state.t + h
+        active, carried = self._carried(state, h)
+        total = StepInfo()
+        info = CollisionInfo()
+        guess = start = None
+        last = self._attempt
+        if newton is not None and newton > 1 and last is not None and last[0] is state and last[1] == h:
+            # redone nonlinearly: from where the last attempt at this step ended, with its contacts
+            active = contacts.merge(active, last[2])
+            start = last[3]
+        t_solve = 0.0
+        cons = pins
+        new = state
+        self._switched = np.zeros(self._n, dtype=bool)
+        self._released = np.zeros(self._n, dtype=bool)
+        for rnd in range(self.max_rounds):
+            cons = self._constraints(pins, active, state.t, h)
+            ts = time.perf_counter()
+            new, si = integrator.step(state, h, cons, guess, newton, start)
+            t_solve += time.perf_counter() - ts
+            start = None
+            total.absorb(si)
+            info.rounds = rnd + 1
+            if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
+                break
+            changed = False
+            if len(active):   # friction changes of contacts new in this step are solved again, the others wait
+                switched = self._friction(active, cons, si.constraint_impulse, new.v, h)
+                changed = bool(np.any(switched & ~np.isin(active.idx, carried)))
+                # a contact pulling its vertex hard towards the obstacle is released now, lighter pulls next step
+                pull = (active.force * h < -PULL_SPEED * self.model.masses[active.idx]) & \
+                    ~self._released[active.idx]
+                if np.any(pull):
+                    self._released[active.idx[pull]] = True
+                    active = active.take(~pull)
+                    changed = True
+            found = contacts.detect(self._frame(state, new), self.obstacles)
+            if len(found):
+                info.contacts += int(np.count_nonzero(~np.isin(found.idx, active.idx)))
+                active = contacts.merge(active, found)
+                changed |= float(found.viol.max()) > RESOLVE_FRACTION * self.thickness
+            if not changed:
+                break      # small new violations are held from the next step on; the response keeps them out now
+            guess = new.v - state.v
+        self._attempt = (state, h, active.take(slice(None)), new.v.copy())
+        info.resting = len(active)
+        info.solves = total.solves
+        work = 0.0
+        if cons.n_contacts and si.constraint_impulse is not None:
+            # the obstacles' work: impulses of the contacts (normal, and tangential while sticking) and the
+            # kinetic friction force over the step, times the obstacle's velocity at the contact
+            J = si.constraint_impulse[cons.contact]
+            work += float(np.einsum("ij,ij->", J + h * cons.friction, cons.velocity))
+        if len(active) and np.all(np.isfinite(new.v)):
+            self._stop_reversed(active, cons, new)
+            work += self._impacts(active, cons, carried, state, new)
+        if limiter is not None and np.all(np.isfinite(new.x)):
+            limiter.apply(new, h, planes=(cons.contact, cons.normal, cons.offset) if cons.n_contacts else None)
+        if np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
+            v_before = new.v.copy()
+            fallback = self.respond(state, new, h, friction=False)
+            work += self._impulse_work(v_before, new)
+            info.fallback = fallback.contacts
+            info.failsafe = fallback.failsafe
+            info.max_penetration = fallback.max_penetration
+            info.candidates = fallback.candidates
+            info.toi = fallback.toi
+        info.work = work
+        self._carry = self._carry[-7:] + [(new, active.take(active.force >= 0.0))]
+        info.t_collision = time.perf_counter() - t_start - t_solve
+        total.collision = info
+        return new, total
+
+    def _frame(self, before: Any, after: Any) -> contacts.Frame:
+        return contacts.Frame(before.x, after.x, before.t, after.t, self.thickness, self.edges, self.faces, self.free)
+
+    def _carried(self, state: Any, h: float) -> tuple[contacts.Planes, np.ndarray]:
+        """The contacts the step starts with: those held at the end of the step that produced ``state``.
+
+        Their planes are taken anew at ``state`` (the contact tests at ``state`` with a reach of
+        ``CONTACT_BAND`` thicknesses: vertex contacts on the tangent plane of the inflated surface at the
+        nearest point, feature contacts as found again); a vertex that moved farther away, or whose contact
+        pulled it in the last solve, is free. They keep their normal force and friction state. With no
+        carried contacts (the first step, or after the state was assigned), the vertices within the band,
+        sticking where there is friction, as new contacts. Returns the contacts and the vertices carried.
+        """
+        prev = next((p for s, p in reversed(self._carry) if s is state), None)
+        still = contacts.Frame(state.x, state.x, state.t, state.t + h, self.thickness, self.edges, self.faces,
+                               self.free, reach=(CONTACT_BAND - 1.0) * self.thickness)
+        near = contacts.detect(still, self.obstacles)
+        near.impact[:] = 0.0
+        near.stick &= self._mu[near.ob] > 0
+        if prev is None:
+            return near, np.zeros(0, dtype=np.int64)
+        out = near.take(np.isin(near.idx, prev.idx))
+        contacts.inherit(prev, out)
+        return out, out.idx.copy()
+
+    def _constraints(self, pins: Constraints, active: contacts.Planes, t0: float, h: float) -> Constraints:
+        """World planes at ``t0 + h``, obstacle velocities and friction of the active contacts.
+
+        A sliding contact's kinetic friction force is ``-mu N s``, ``N`` its normal force in the last solve
+        that held it and ``s`` its sliding direction relative to the obstacle.
+        """
+        if not len(active):
+            return pins
+        t1 = t0 + h
+        k = len(active)
+        n = np.empty((k, 3))
+        offset = np.empty(k)
+        u = np.empty((k, 3))
+        for j, ob in enumerate(self.obstacles):
+            sel = active.ob == j
+            if not np.any(sel):
+                continue
+            c1, R1 = ob.motion.pose(t1)
+            n[sel] = active.n[sel] @ R1.T
+            offset[sel] = active.off[sel] + n[sel] @ c1
+            # the contact point's mean velocity over the step (its chord: a keyframe inside the step included)
+            u[sel] = (ob.motion.to_world(active.point[sel], t1) - ob.motion.to_world(active.point[sel], t0)) / h
+        stick = active.stick & (self._mu[active.ob] > 0)
+        fr = np.where(stick[:, None], 0.0,
+                      -(self._mu[active.ob] * np.maximum(active.force, 0.0))[:, None] * active.slip)
+        return pins.with_contacts(active.idx, n, offset, u, stick, fr)
+
+    def _friction(self, active: contacts.Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray,
+                  h: float) -> np.ndarray:
+        """Update the contacts' normal forces and Coulomb states from a solve (in place); the contacts that changed.
+
+        A sticking contact whose tangential impulse exceeds ``mu`` times its normal impulse slides (in the
+        direction the impulse held it back from); a sliding one whose tangential velocity relative to the
+        obstacle the friction reversed sticks. A sliding contact's direction follows its velocity. Within one
+        step a contact changes its state at most once (``self._switched``), so that the solves of a step
+        cannot cycle.
+        """
+        if J is None:
+            return np.zeros(len(active), dtype=bool)
+        n = cons.normal
+        Jc = J[active.idx]
+        jn = np.einsum("ij,ij->i", Jc, n)
+        active.force = jn / h
+        mu = self._mu[active.ob]
+        jt = Jc - jn[:, None] * n
+        jt_norm = np.sqrt(np.einsum("ij,ij->i", jt, jt))
+        rel = v[active.idx] - cons.velocity
+        vt = rel - np.einsum("ij,ij->i", rel, n)[:, None] * n
+        vt_norm = np.sqrt(np.einsum("ij,ij->i", vt, vt))
+        stick = active.stick & (mu > 0)
+        free = ~self._switched[active.idx]
+        to_slip = stick & free & (jt_norm > mu * np.maximum(jn, 0.0) * (1.0 + 1e-9) + 1e-15)
+        sliding = ~stick & (mu > 0)
+        to_stick = sliding & free & (np.einsum("ij,ij->i", vt, active.slip) <= 0.0)
+        switched = to_slip | to_stick
+        self._switched[active.idx[switched]] = True
+        keep = sliding & ~to_stick & (vt_norm > 0)
+        active.slip[to_slip] = -jt[to_slip] / jt_norm[to_slip, None]
+        active.slip[keep] = vt[keep] / vt_norm[keep, None]
+        active.slip[to_stick] = 0.0
+        active.stick = (stick & ~to_slip) | to_stick
+        return switched
+
+    def _stop_reversed(self, active: contacts.Planes, cons: Constraints, after: Any) -> None:
+        """Sliding contacts that the last solve's friction turned back stick: their tangential velocity becomes
+        the obstacle's (a velocity change that only takes energy away; they stick from the next step on)."""
+        if not cons.n_contacts:
+            return
+        pos = np.full(self._n, -1, dtype=np.int64)
+        pos[cons.contact] = np.arange(cons.n_contacts)
+        r = pos[active.idx]
+        was_sliding = (r >= 0) & ~cons.stick[np.maximum(r, 0)]
+        now = was_sliding & active.stick
+        if not np.any(now):
+            return
+        k = r[now]
+        i = cons.contact[k]
+        n, u = cons.normal[k], cons.velocity[k]
+        rel = after.v[i] - u
+        rel_t = rel - np.einsum("ij,ij->i", rel, n)[:, None] * n
+        after.v[i] -= rel_t
+
+    def _impacts(self, active: contacts.Planes, cons: Constraints, carried: np.ndarray, before: Any,
+                 after: Any) -> float:
+        """Held contacts still approaching the obstacle at the end of the step take its normal velocity; those new
+        in this step that were approaching at its start leave with it less ``restitution`` times their approach
+        speed (velocities only: the positions stay on the planes). An inelastic contact: it only takes energy.
+
+        Returns the work of these velocity changes against the obstacles' motion, J.
+        """
+        i, n, u = cons.contact, cons.normal, cons.velocity
+        un = np.einsum("ij,ij->i", u, n)
+        target = un.copy()
+        if self.restitution > 0:
+            w = np.einsum("ij,ij->i", before.v[i] - u, n)
+            bounce = ~np.isin(i, carried) & (w < 0)
+            target[bounce] -= self.restitution * w[bounce]
+            rows = np.flatnonzero(np.isin(active.idx, i[bounce]))
+            active.force[rows] = -1.0          # bouncing off: not carried
+        vn = np.einsum("ij,ij->i", after.v[i], n)
+        change = np.maximum(target - vn, 0.0)
+        if not np.any(change):
             return 0.0
-        return float(np.einsum("ij,ij->", J[idx], 0.5 * (v0[idx] + v1[idx])))
+        dv = change[:, None] * n
+        after.v[i] += dv
+        return float(np.einsum("i,ij,ij->", self.model.masses[i], dv, u))
 
-    # ------------------------------------------------------------------ before the solve
-    def constrain(self, integrator: Any, state: Any) -> int:
-        """Put the resting contacts into an implicit integrator's filter (no-op for explicit ones).
+    def _impulse_work(self, v_before: np.ndarray, after: Any) -> float:
+        """Work of the fallback response's velocity changes against the obstacles' motion, J.
 
-        Returns the number of constrained vertices.
+        Each changed vertex is charged to the obstacle nearest to it.
         """
-        if not getattr(integrator, "implicit", False):
-            return 0
-        from ..solvers import Filter
+        if not any(ob.motion.moving for ob in self.obstacles):
+            return 0.0
+        moved = np.flatnonzero(np.any(after.v != v_before, axis=1))
+        if not len(moved):
+            return 0.0
+        x = after.x[moved]
+        owner = self._nearest_obstacle(x, after.t)
+        u = np.zeros((len(moved), 3))
+        for k, ob in enumerate(self.obstacles):
+            sel = owner == k
+            u[sel] = ob.motion.point_velocity(x[sel], after.t)
+        dv = after.v[moved] - v_before[moved]
+        return float(np.einsum("i,ij,ij->", self.model.masses[moved], dv, u))
 
-        keep = np.ones(len(self.contact_idx), dtype=bool)
-        J = getattr(integrator, "constraint_impulse", None)
-        if J is not None and len(self._constrained) and len(self.contact_idx):
-            # released: the constraint pulled the vertex towards the obstacle in the last solve
-            pulled = np.zeros(self._n, dtype=bool)
-            jn = np.einsum("ij,ij->i", J[self._constrained], self._last_n)
-            pulled[self._constrained[jn < 0]] = True
-            keep &= ~pulled[self.contact_idx]
-        idx, nrm, un = self.contact_idx[keep], self.contact_n[keep], self.contact_un[keep]
-        self._constrained, self._last_n = idx, nrm
-        if not len(idx):
-            integrator.filter = Filter(self._n, self.model.pinned)
-            integrator.extra_dv = None
-            return 0
-        S = np.eye(3)[None] - nrm[:, :, None] * nrm[:, None, :]
-        integrator.filter = Filter(self._n, self.model.pinned, idx, S)
-        z = np.zeros((self._n, 3))
-        vn = np.einsum("ij,ij->i", state.v[idx], nrm)
-        z[idx] = (un - vn)[:, None] * nrm
-        integrator.extra_dv = z
-        return len(idx)
+    def _nearest_obstacle(self, x: np.ndarray, t: float) -> np.ndarray:
+        """Index of the obstacle nearest to each world point at ``t`` (meshes: by their nearest sampled vertex)."""
+        best = np.full(len(x), np.inf)
+        owner = np.zeros(len(x), dtype=np.int64)
+        for k, ob in enumerate(self.obstacles):
+            p = ob.motion.to_local(x, t)
+            if isinstance(ob.shape, MeshShape):
+                V = ob.shape.vertices[::max(1, len(ob.shape.vertices) // 256)]
+                d = np.min(np.linalg.norm(p[:, None, :] - V[None], axis=2), axis=1)
+            else:
+                d = ob.shape.distance(p)
+            owner = np.where(d < best, k, owner)
+            best = np.minimum(best, d)
+        return owner
 
     # ------------------------------------------------------------------ after the step
-    def respond(self, before: Any, after: Any, h: float, integrator: Any = None) -> CollisionInfo:
+    def respond(self, before: Any, after: Any, h: float, friction: bool = True) -> CollisionInfo:
         """Correct the proposed state ``after`` in place so that no cloth vertex, edge or triangle enters an obstacle.
+
+        The geometric response (module docstring, step 2): the whole collision stage of an explicit
+        step, and the fallback after the solves of an implicit one (there with ``friction=False``: the
+        solve has applied it).
 
         Parameters
         ----------
         before : State
             The collision-free state at the start of the step.
         after : State
-            The integrator's proposed state at ``before.t + h`` (its arrays are modified).
+            The proposed state at ``before.t + h`` (its arrays are modified).
         h : float
             Step, s.
-        integrator : Integrator, optional
-            Supplies the contact constraints' impulses of the last solve (for friction).
         """
         t_start = time.perf_counter()
-        info = CollisionInfo(resting=len(self._constrained))
+        info = CollisionInfo()
         x0, x, v = before.x, after.x, after.v
         t0, t1 = before.t, after.t
         self._held: list[tuple[np.ndarray, ...]] = []
         self._current = 0
-        self._resting_friction(x, v, h, t1, integrator)
+        self._friction_on = friction
         toi = np.inf
         for rnd in range(self.max_rounds):
             busy = False
@@ -271,32 +538,12 @@ class Collider(FeatureStages, MeshStages):
         else:
             info.failsafe = self._failsafe(x0, x, v, t0, t1, h)
         info.toi = float(toi) if np.isfinite(toi) else float("nan")
-        info.max_penetration = self._update_contacts(x, v, t1, h)
+        info.max_penetration = self._penetration(x, t1)
         info.t_collision = time.perf_counter() - t_start
         return info
 
-    def _resting_friction(self, x, v, h, t1, integrator) -> None:
-        """Coulomb friction of the constrained contacts, bounded by the normal impulse of the solve."""
-        idx = self._constrained
-        J = getattr(integrator, "constraint_impulse", None)
-        if not len(idx) or J is None:
-            return
-        n = self._last_n
-        dvn = np.einsum("ij,ij->i", J[idx], n) * self.inv_mass[idx]
-        mu = np.empty(len(idx))
-        u = np.empty((len(idx), 3))
-        for k, ob in enumerate(self.obstacles):
-            sel = self.contact_obstacle_of(idx) == k
-            mu[sel] = ob.friction
-            u[sel] = ob.motion.point_velocity(x[idx[sel]], t1)
-        new, _ = impulse(v[idx], u, n, mu, 0.0, dvn)
-        x[idx] += h * (new - v[idx])
-        v[idx] = new
-
-    def contact_obstacle_of(self, idx: np.ndarray) -> np.ndarray:
-        lookup = np.full(self._n, -1, dtype=np.int64)
-        lookup[self.contact_idx] = self.contact_obstacle
-        return lookup[idx]
+    def _friction_of(self, ob: Obstacle) -> float:
+        return ob.friction if getattr(self, "_friction_on", True) else 0.0
 
     # ------------------------------------------------------------------ one round against one obstacle
     def _near(self, ob: Obstacle, p0: np.ndarray, p1: np.ndarray, margin: float) -> np.ndarray:
@@ -334,7 +581,7 @@ class Collider(FeatureStages, MeshStages):
                 _, n_loc, _ = shape.closest(q)
                 tc = t0 + s * h
                 xc, n_w, u = self._world_at(mo, q, n_loc, tc)
-                new, _ = impulse(v[hit], u, n_w, ob.friction, self.restitution)
+                new, _ = impulse(v[hit], u, n_w, self._friction_of(ob), self.restitution)
                 v[hit] = new
                 x[hit] = xc + ((1.0 - s) * h)[:, None] * new
                 busy, contacts = True, contacts + len(hit)
@@ -342,7 +589,7 @@ class Collider(FeatureStages, MeshStages):
         if len(vid):
             p1v = mo.to_local(x[vid], t1)
             phi, n_loc, _ = shape.closest(p1v)
-            close = phi < th
+            close = phi < th * (1.0 - PROXIMITY_SLACK)   # a vertex held on its plane is not moved
             if np.any(close):
                 i = vid[close]
                 push = th - phi[close]
@@ -351,7 +598,7 @@ class Collider(FeatureStages, MeshStages):
                 x[i] = p1v @ R1.T + c1
                 n_w = n_loc[close] @ R1.T
                 u = mo.point_velocity(x[i], t1)
-                new, _ = impulse(v[i], u, n_w, ob.friction, self.restitution)
+                new, _ = impulse(v[i], u, n_w, self._friction_of(ob), self.restitution)
                 x[i] += h * (new - v[i]) - h * np.einsum("ij,ij->i", new - v[i], n_w)[:, None] * n_w
                 v[i] = new
                 contacts += len(i)
@@ -463,17 +710,7 @@ class Collider(FeatureStages, MeshStages):
         idx = np.flatnonzero(bad)
         if not len(idx):
             return bad
-        best = np.full(len(idx), np.inf)
-        owner = np.zeros(len(idx), dtype=np.int64)
-        for k, ob in enumerate(self.obstacles):
-            if isinstance(ob.shape, MeshShape):   # no signed distance: the nearest vertex of the mesh
-                p = ob.motion.to_local(x0[idx], t0)
-                d = np.min(np.linalg.norm(p[:, None, :] - ob.shape.vertices[None, ::max(1, len(ob.shape.vertices)
-                                                                                       // 256)], axis=2), axis=1)
-            else:
-                d = ob.shape.distance(ob.motion.to_local(x0[idx], t0))
-            owner = np.where(d < best, k, owner)
-            best = np.minimum(best, d)
+        owner = self._nearest_obstacle(x0[idx], t0)
         for k, ob in enumerate(self.obstacles):
             sel = idx[owner == k]
             if len(sel):
@@ -481,57 +718,14 @@ class Collider(FeatureStages, MeshStages):
                 v[sel] = ob.motion.point_velocity(x[sel], t1)
         return bad
 
-    def _update_contacts(self, x, v, t1, h) -> float:
-        """Record resting contacts for the next solve; return the largest penetration depth, m."""
-        th = self.thickness
-        idx_l, n_l, un_l, ob_l = [], [], [], []
+    def _penetration(self, x: np.ndarray, t1: float) -> float:
+        """The largest depth of a cloth vertex inside a primitive obstacle at ``t1``, m."""
         depth = 0.0
-        taken = np.zeros(self._n, dtype=bool)
-        for k, ob in enumerate(self.obstacles):
-            if isinstance(ob.shape, MeshShape):   # its contacts are recorded by the response (self._held)
+        for ob in self.obstacles:
+            if isinstance(ob.shape, MeshShape):
                 continue
             p = ob.motion.to_local(x, t1)
-            vid = np.flatnonzero(self._near(ob, p, p, CONTACT_BAND * th))
-            if not len(vid):
-                continue
-            phi, n_loc, _ = ob.shape.closest(p[vid])
-            depth = max(depth, float(np.max(-phi, initial=0.0)))
-            c = (phi <= CONTACT_BAND * th) & self.free[vid] & ~taken[vid]
-            i = vid[c]
-            if not len(i):
-                continue
-            _, R = ob.motion.pose(t1)
-            n_w = n_loc[c] @ R.T
-            u = ob.motion.point_velocity(x[i], t1)
-            un = np.einsum("ij,ij->i", u, n_w)
-            # not separating: leaving at less than SETTLE_FRACTION of the thickness per step
-            approach = np.einsum("ij,ij->i", v[i], n_w) - un <= SETTLE_FRACTION * th / h
-            i, n_w, un = i[approach], n_w[approach], un[approach]
-            taken[i] = True
-            idx_l.append(i)
-            n_l.append(n_w)
-            un_l.append(un)
-            ob_l.append(np.full(len(i), k))
-        if self._held:   # vertices held by edges and corners: the last request per vertex
-            hi, hn, hu, hk = (np.concatenate(a) for a in zip(*self._held))
-            last = np.zeros(self._n, dtype=np.int64) - 1
-            last[hi] = np.arange(len(hi))
-            j = last[(last >= 0) & ~taken]
-            if len(j):
-                rel = np.einsum("ij,ij->i", v[hi[j]], hn[j]) - hu[j] <= SETTLE_FRACTION * th / h
-                j = j[rel]
-                idx_l.append(hi[j])
-                n_l.append(hn[j])
-                un_l.append(hu[j])
-                ob_l.append(hk[j])
-        if idx_l:
-            self.contact_idx = np.concatenate(idx_l)
-            self.contact_n = np.concatenate(n_l)
-            self.contact_un = np.concatenate(un_l)
-            self.contact_obstacle = np.concatenate(ob_l)
-        else:
-            self.contact_idx = np.zeros(0, dtype=np.int64)
-            self.contact_n = np.zeros((0, 3))
-            self.contact_un = np.zeros(0)
-            self.contact_obstacle = np.zeros(0, dtype=np.int64)
+            vid = np.flatnonzero(self._near(ob, p, p, 0.0))
+            if len(vid):
+                depth = max(depth, float(np.max(-ob.shape.distance(p[vid]), initial=0.0)))
         return depth

@@ -11,9 +11,12 @@ contacts' triangle indices are the candidate pairs for the exact tests in numpy
 * vertex path ``x0 -> x1``: the degenerate triangle ``(x0, x1, x1)``, and an
   octahedron of circumradius ``sqrt(3) r`` around ``x1`` (it contains the ball of
   radius ``r``, so a surface within ``r`` of the end position is found);
-* edge ``(a, b)``: its swept quad ``(a0, b0, b1), (a0, b1, a1)``;
+* edge ``(a, b)``: its swept quad ``(a0, b0, b1), (a0, b1, a1)``, and its end
+  segment widened by ``r`` across it in two directions (an obstacle edge within
+  about ``r`` of it cuts one of them);
 * triangle: its end position ``(a1, b1, c1)`` (an obstacle corner that crossed it
-  in the step is on its far side then, so the obstacle's surface cuts it).
+  in the step is on its far side then, so the obstacle's surface cuts it), and
+  the same shifted by ``r`` along its normal to either side (a corner within ``r``).
 """
 
 from __future__ import annotations
@@ -36,6 +39,15 @@ def bvh(vertices: np.ndarray, faces: np.ndarray):
     m.addSubModel(np.ascontiguousarray(vertices, dtype=float), np.ascontiguousarray(faces, dtype=np.int64))
     m.endModel()
     return fcl.CollisionObject(m, fcl.Transform())
+
+
+def _across(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (K, 3) perpendicular to each row of ``d`` and to each other."""
+    d = d / np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]
+    pick = np.where(np.abs(d[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(d, pick)
+    e1 /= np.maximum(np.linalg.norm(e1, axis=1), 1e-300)[:, None]
+    return e1, np.cross(d, e1)
 
 
 def candidates(obstacle, p0: np.ndarray, p1: np.ndarray, verts: np.ndarray, edges: np.ndarray,
@@ -79,9 +91,22 @@ def candidates(obstacle, p0: np.ndarray, p1: np.ndarray, verts: np.ndarray, edge
         base = 4 * np.arange(m)[:, None]
         faces = np.stack([base + [0, 1, 2], base + [0, 2, 3]], axis=1).reshape(-1, 3)
         add(quad, faces, EDGE_QUAD, np.arange(m), 2)
+        # the end segment widened by r across it in two directions: obstacle edges within about r of it
+        a, b = p1[edges[:, 0]], p1[edges[:, 1]]
+        e1, e2 = _across(b - a)
+        for e in (e1, e2):
+            wide = np.stack([a - r * e, b - r * e, b + r * e, a + r * e], axis=1).reshape(-1, 3)
+            add(wide, faces, EDGE_QUAD, np.arange(m), 2)
     if len(tris):
         m = len(tris)
-        add(p1[tris].reshape(-1, 3), 3 * np.arange(m)[:, None] + [0, 1, 2], TRIANGLE, np.arange(m), 1)
+        t1 = p1[tris]
+        tf = 3 * np.arange(m)[:, None] + [0, 1, 2]
+        add(t1.reshape(-1, 3), tf, TRIANGLE, np.arange(m), 1)
+        # and shifted by r to either side: an obstacle corner within r of the triangle cuts one of them
+        nrm = np.cross(t1[:, 1] - t1[:, 0], t1[:, 2] - t1[:, 0])
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1), 1e-300)[:, None]
+        for sgn in (1.0, -1.0):
+            add((t1 + sgn * r * nrm[:, None, :]).reshape(-1, 3), tf, TRIANGLE, np.arange(m), 1)
     if not n:
         return {}
     soup = bvh(np.concatenate(pts), np.concatenate(tri))

@@ -26,6 +26,12 @@ ENTRY_BISECTIONS = 8
 
 
 def edge_minimum(shape: Shape, a0: np.ndarray, a1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Parameter ``a`` (K,) and value (K,) m of the smallest signed distance along segments a0 -> a1
+    (:meth:`Shape.segment_minimum <implicit_cloth.collision.shapes.Shape.segment_minimum>`)."""
+    return shape.segment_minimum(a0, a1)
+
+
+def golden_minimum(shape: Shape, a0: np.ndarray, a1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Parameter ``a`` (K,) and value (K,) m of the smallest signed distance along segments a0 -> a1.
 
     The signed distance of a convex shape is convex, so along a segment it has one
@@ -77,6 +83,8 @@ class FeatureStages:
         """
         th = self.thickness
         mo, shape = ob.motion, ob.shape
+        if shape.flat:
+            return False, 0, 0
         _, R1 = mo.pose(t1)
         p = mo.to_local(x, t1)
         q = p[self.edges]

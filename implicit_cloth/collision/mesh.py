@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from . import broadphase, ccd
-from .response import SETTLE_FRACTION, impulse
+from .response import PROXIMITY_SLACK, SETTLE_FRACTION, impulse
 
 
 class MeshStages:
@@ -86,7 +86,7 @@ class MeshStages:
             pc = P0[k] + s[k, None] * (P1[k] - P0[k]) + th * d
             tc = t0 + s[k] * h
             xc, n_w, u = self._world_at(mo, pc, d, tc)
-            new, _ = impulse(v[i], u, n_w, ob.friction, self.restitution)
+            new, _ = impulse(v[i], u, n_w, self._friction_of(ob), self.restitution)
             v[i] = new
             x[i] = xc + ((1.0 - s[k]) * h)[:, None] * new
             busy, contacts, s_min = True, len(i), float(s[k].min())
@@ -95,7 +95,7 @@ class MeshStages:
         q, _ = ccd.point_triangle_closest(P1, A, B, C)
         gap = P1 - q
         dist = np.sqrt(np.einsum("ij,ij->i", gap, gap))
-        k = np.flatnonzero((dist < th) & (dist > 1e-12))
+        k = np.flatnonzero((dist < th * (1.0 - PROXIMITY_SLACK)) & (dist > 1e-12))
         if len(k):
             k = k[np.argsort(dist[k], kind="stable")]
             _, first = np.unique(vi[k], return_index=True)
@@ -107,7 +107,7 @@ class MeshStages:
             x[i] = (P1[k] + push[:, None] * d) @ R1.T + c1
             n_w = d @ R1.T
             u = mo.point_velocity(x[i], t1)
-            new, _ = impulse(v[i], u, n_w, ob.friction, self.restitution)
+            new, _ = impulse(v[i], u, n_w, self._friction_of(ob), self.restitution)
             x[i] += h * (new - v[i]) - h * np.einsum("ij,ij->i", new - v[i], n_w)[:, None] * n_w
             v[i] = new
             self._record(i, n_w, np.einsum("ij,ij->i", u, n_w))

@@ -27,6 +27,9 @@ import numpy as np
 
 #: Corrections below this fraction of the thickness do not call for another response round.
 SETTLE_FRACTION = 0.02
+#: A vertex nearer than the thickness by less than this fraction of it is not pushed (one the solve held on
+#: its contact plane ends there to round-off).
+PROXIMITY_SLACK = 1e-6
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:

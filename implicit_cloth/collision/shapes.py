@@ -221,6 +221,18 @@ class Shape:
     feature_edges: np.ndarray = np.zeros((0, 2, 3))
     #: Half-extents of the local bounding box (inf for the plane).
     half_extent: np.ndarray = np.zeros(3)
+    #: Whether the surface away from its sharp features is flat (box, plane): a straight cloth edge whose
+    #: ends are outside then comes nearer only at a feature (tested as such), never between them.
+    flat = False
+
+    def segment_minimum(self, a0: np.ndarray, a1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Parameter ``a`` (K,) and value (K,) m of the smallest signed distance along segments ``a0 -> a1``.
+
+        Golden-section search on the (convex) signed distance; shapes with a closed form override it.
+        """
+        from .features import golden_minimum
+
+        return golden_minimum(self, a0, a1)
 
     def closest(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signed distance (K,) m, outward unit normal (K, 3) and nearest surface point (K, 3)."""
@@ -272,6 +284,13 @@ class Sphere(Shape):
     def distance(self, p):
         return _norm(p) - self.radius
 
+    def segment_minimum(self, a0, a1):
+        """Closed form: the segment's point nearest to the centre."""
+        d = a1 - a0
+        dd = np.einsum("ij,ij->i", d, d)
+        a = np.clip(-np.einsum("ij,ij->i", a0, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+        return a, _norm(a0 + a[:, None] * d) - self.radius
+
     def sweep(self, p0, p1, r):
         """Closed form: smallest root of ``|p0 + s d|^2 = (R + r)^2`` in [0, 1]."""
         d = p1 - p0
@@ -292,6 +311,7 @@ class Plane(Shape):
     """The half-space ``z <= 0`` of the local frame (outward normal +z)."""
 
     name = "plane"
+    flat = True
 
     def __init__(self) -> None:
         self.half_extent = np.full(3, np.inf)
@@ -316,6 +336,7 @@ class Box(Shape):
     """Axis-aligned box of full extents ``size`` centred at the origin of its local frame."""
 
     name = "box"
+    flat = True
 
     def __init__(self, size) -> None:
         self.h = 0.5 * np.asarray(size, dtype=float)
@@ -370,6 +391,17 @@ class Capsule(Shape):
     def distance(self, p):
         z = p[:, 2] - np.clip(p[:, 2], -0.5 * self.height, 0.5 * self.height)
         return np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2 + z * z) - self.radius
+
+    def segment_minimum(self, a0, a1):
+        """Closed form: the nearest points of the segment and the capsule's axis."""
+        from .ccd import segment_closest
+
+        q0 = np.zeros_like(a0)
+        q1 = np.zeros_like(a0)
+        q0[:, 2], q1[:, 2] = -0.5 * self.height, 0.5 * self.height
+        a, b = segment_closest(a0, a1, q0, q1)
+        gap = a0 + a[:, None] * (a1 - a0) - (q0 + b[:, None] * (q1 - q0))
+        return a, _norm(gap) - self.radius
 
     def closest(self, p):
         a = np.zeros_like(p)
@@ -476,6 +508,52 @@ class MeshShape(Shape):
         self.feature_points = self.vertices
         self.feature_edges = self.vertices[self.edges]
         self.bvh = broadphase.bvh(self.vertices, self.faces)
+        # closed (every edge in exactly two faces): the mesh has an inside
+        _, counts = np.unique(np.sort(np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]],
+                                                      self.faces[:, [2, 0]]]), axis=1), axis=0, return_counts=True)
+        self.closed = bool(np.all(counts == 2))
+
+    def depth(self, p: np.ndarray) -> np.ndarray:
+        """Depth (K,) m of local points inside the mesh: the distance to the nearest face of the points inside
+        (winding number above one half), 0 outside and everywhere for an open mesh."""
+        out = np.zeros(len(p))
+        if not self.closed or not len(p):
+            return out
+        lo, hi = self.bounds
+        cand = np.flatnonzero(np.all((p >= lo) & (p <= hi), axis=1))
+        if not len(cand):
+            return out
+        tri = self.vertices[self.faces]
+        inside = cand[np.abs(_winding(p[cand], tri)) > 0.5]
+        if len(inside):
+            from .ccd import point_triangle_closest
+
+            k, f = len(inside), len(tri)
+            P = np.repeat(p[inside], f, axis=0)
+            q, _ = point_triangle_closest(P, np.tile(tri[:, 0], (k, 1)), np.tile(tri[:, 1], (k, 1)),
+                                          np.tile(tri[:, 2], (k, 1)))
+            out[inside] = np.linalg.norm(P - q, axis=1).reshape(k, f).min(axis=1)
+        return out
+
+
+def _winding(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Generalised winding numbers (K,) of points ``p`` with respect to triangles ``tri`` (F, 3, 3).
+
+    The sum of the triangles' signed solid angles over 4 pi (Van Oosterom & Strackee 1983): about 1 inside a
+    closed, outward-oriented mesh, 0 outside.
+    """
+    out = np.zeros(len(p))
+    step = max(1, 2_000_000 // max(len(tri), 1))
+    for s in range(0, len(p), step):              # chunks of points: memory, not a per-point loop
+        a = tri[None, :, 0] - p[s:s + step, None]
+        b = tri[None, :, 1] - p[s:s + step, None]
+        c = tri[None, :, 2] - p[s:s + step, None]
+        la, lb, lc = _norm(a), _norm(b), _norm(c)
+        num = np.einsum("kfi,kfi->kf", a, np.cross(b, c))
+        den = la * lb * lc + np.einsum("kfi,kfi->kf", a, b) * lc + np.einsum("kfi,kfi->kf", b, c) * la \
+            + np.einsum("kfi,kfi->kf", c, a) * lb
+        out[s:s + step] = np.arctan2(num, den).sum(axis=1) / (2.0 * np.pi)
+    return out
 
 
 def local_aabb(shape: Shape) -> tuple[np.ndarray, np.ndarray]:
