@@ -1,0 +1,359 @@
+"""Contact at large steps: energy, strain and where the cloth ends, computed here from the states.
+
+Every row runs one scene with :class:`implicit_cloth.Simulator` and judges it
+with this script's own code, not the run's report: at every kept frame (60 Hz)
+the total energy ``E = kinetic + gravity + sum_s k_s (l_s - L0_s)^2 / 2`` is
+computed from the state's positions and velocities, with the rest lengths
+``L0`` taken from frame 0 and the spring pairs and constants from the model.
+
+Static rows (the drape table): a 1 m x 1 m cloth of 0.1 kg, springs
+k = 1000 / 333.3 / 10 N/m (structural / shear / bend), damping 0.01 N*s/m (or
+a material preset, with its own springs and density), gravity, no drag, is
+dropped from 0.2 m above an obstacle's top (friction 0.3, thickness 5 mm) and
+simulated for 3 s at dt = 1/60 or 1/30 s: a sphere (r = 0.3 m), a 0.4 m box
+face up, edge up and corner up, a cone's tip (r = 0.25, h = 0.4 m), a
+horizontal capsule (r = 0.15, length 0.6 m), a vertical cloth landing
+edge-first on the floor plane, and the same sphere and box as triangle meshes
+(an icosphere of 1280 faces, a 12-triangle box). Per row:
+
+* ``rise``: the largest ``E(t) - E(0)`` over the run, as a percentage of
+  ``m g (1 m)`` (goal: at most 2 %);
+* ``max strain``: the largest ``(l - L0) / L0`` of any spring at a frame;
+* ``end``: ``resting on it`` (at the end some vertex within 2 thicknesses of the
+  obstacle, the cloth's centroid less than 0.6 m below its top, and an rms vertex
+  speed below 1 cm/s), ``still moving`` (on it, but faster), ``slid off`` (not on
+  it: fallen past it);
+* ``substeps/frame`` (adaptive stepping: accepted substeps per kept frame) and
+  ``ms/frame`` (wall time; the machine is shared, so read it as a ratio).
+
+Moving rows: a sphere (r = 0.15 m) at 2, 5, 10 or 20 m/s through the middle of
+a cloth hanging from its two top corners, 1 s at dt = 1/30 s; goal: no spring
+beyond 2.5 times its rest length (strain 1.5). The energy there is not bounded
+by the start (the sphere does work), so only the strain is judged.
+
+Usage::
+
+    python benchmarks/contact_energy.py                 # the full table (about an hour on 2 cores)
+    python benchmarks/contact_energy.py --quick         # CI smoke: a few small rows
+    python benchmarks/contact_energy.py --shapes sphere box_face --sizes 32 --dts 30
+    python benchmarks/contact_energy.py --workers 2     # rows in parallel processes
+
+Writes ``OUT/contact_energy.{json,md,png}`` (``--out``, default
+benchmarks/results). Never asserts: the goals are read off the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from _common import ROOT, ic, machine, progress, save_png, write_outputs
+
+G = 9.81
+MASS = 0.1
+THICKNESS = 0.005
+DROP = 0.2
+SPRINGS = {"structural": 1000.0, "shear": 333.3, "bend": 10.0}
+DAMPING = 0.01
+FRICTION = 0.3
+#: Goal of the static rows: the largest energy rise, as a fraction of m g (1 m).
+RISE_GOAL = 0.02
+#: Goal of the moving rows: no spring beyond this many times its rest length.
+STRETCH_GOAL = 2.5
+REST_SPEED = 0.01           # m/s: "at rest" when the rms vertex speed at the end is below this
+ON_DISTANCE = 2 * THICKNESS  # "on it": some vertex this near the obstacle at the end, and ...
+ON_DROP = 0.6               # ... the cloth's centroid less than this far below the obstacle's top, m
+
+BOX = 0.4
+_CORNER_ROT = list(np.array([1.0, -1.0, 0.0]) / math.sqrt(2.0) * math.acos(1.0 / math.sqrt(3.0)))
+#: shape name -> (obstacle table without friction, height of its top above z = 0, m)
+SHAPES: dict[str, tuple[dict, float]] = {
+    "sphere": ({"shape": "sphere", "radius": 0.3}, 0.3),
+    "box_face": ({"shape": "box", "size": [BOX] * 3}, BOX / 2),
+    "box_edge": ({"shape": "box", "size": [BOX] * 3, "rotation": [math.pi / 4, 0.0, 0.0]}, BOX / 2 * math.sqrt(2)),
+    "box_corner": ({"shape": "box", "size": [BOX] * 3, "rotation": _CORNER_ROT}, BOX / 2 * math.sqrt(3)),
+    "cone": ({"shape": "cone", "radius": 0.25, "height": 0.4}, 0.4),
+    "capsule": ({"shape": "capsule", "radius": 0.15, "height": 0.6, "axis": [1.0, 0.0, 0.0]}, 0.15),
+    "plane": ({"shape": "plane"}, 0.0),
+    "mesh_icosphere": ({"shape": "mesh", "path": "icosphere.obj"}, 0.3),
+    "mesh_box": ({"shape": "mesh", "path": "box.obj"}, BOX / 2),
+}
+MATERIAL_SHAPES = ("sphere", "box_edge")
+SPEEDS = (2.0, 5.0, 10.0, 20.0)
+
+
+def mesh_files(folder: Path) -> Path:
+    """Write the mesh obstacles (trimesh's icosphere r = 0.3 m, a 0.4 m box) into ``folder``."""
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=3, radius=0.3).export(folder / "icosphere.obj")
+    trimesh.creation.box(extents=[BOX] * 3).export(folder / "box.obj")
+    return folder
+
+
+def static_scene(shape: str, n: int, dt: float, duration: float, material: str | None = None) -> dict:
+    ob, top = SHAPES[shape]
+    ob = {**ob, "friction": FRICTION}
+    if shape == "plane":   # a vertical cloth whose lower edge starts DROP above the floor
+        cloth = {"size": [1.0, 1.0], "resolution": [n, n], "center": [0.0, 0.0, 0.5 + DROP], "plane": "xz"}
+    else:
+        cloth = {"size": [1.0, 1.0], "resolution": [n, n], "center": [0.0, 0.0, top + DROP], "plane": "xy"}
+    if material is None:
+        cloth["mass"] = MASS
+        cloth["springs"] = {k: {"stiffness": s, "damping": DAMPING} for k, s in SPRINGS.items()}
+    else:
+        cloth["material"] = material
+    return {"simulation": {"integrator": "backward_euler", "dt": dt, "duration": duration, "frame_rate": 60},
+            "cloth": cloth, "effects": {"gravity": [0.0, 0.0, -G]}, "obstacles": [ob],
+            "collision": {"thickness": THICKNESS}}
+
+
+def moving_scene(speed: float, n: int, dt: float, duration: float) -> dict:
+    ob = {"shape": "sphere", "radius": 0.15, "center": [0.0, -0.4, 1.0], "velocity": [0.0, speed, 0.0],
+          "friction": FRICTION}
+    cloth = {"size": [1.0, 1.0], "resolution": [n, n], "center": [0.0, 0.0, 1.0], "plane": "xz", "mass": MASS,
+             "pins": ["top_left", "top_right"],
+             "springs": {k: {"stiffness": s, "damping": DAMPING} for k, s in SPRINGS.items()}}
+    return {"simulation": {"integrator": "backward_euler", "dt": dt, "duration": duration, "frame_rate": 60},
+            "cloth": cloth, "effects": {"gravity": [0.0, 0.0, -G]}, "obstacles": [ob],
+            "collision": {"thickness": THICKNESS}}
+
+
+class Judge:
+    """Energy and strain of states, from the model's spring pairs and constants and frame 0's lengths."""
+
+    def __init__(self, sim: ic.Simulator) -> None:
+        s = sim.model.springs
+        self.i, self.j, self.k = s.i.copy(), s.j.copy(), s.k.copy()
+        self.m = sim.model.masses.copy()
+        self.L0 = self.lengths(sim.positions)
+
+    def lengths(self, x: np.ndarray) -> np.ndarray:
+        d = x[self.j] - x[self.i]
+        return np.sqrt(np.einsum("ij,ij->i", d, d))
+
+    def __call__(self, x: np.ndarray, v: np.ndarray) -> tuple[float, float]:
+        """Total energy (J) and the largest strain."""
+        ext = self.lengths(x) - self.L0
+        e = 0.5 * float(np.dot(self.m, np.einsum("ij,ij->i", v, v))) + G * float(np.dot(self.m, x[:, 2])) \
+            + 0.5 * float(np.dot(self.k, ext * ext))
+        return e, float(np.max(ext / np.where(self.L0 > 0, self.L0, 1.0)))
+
+
+def on_obstacle(sim: ic.Simulator, x: np.ndarray, t: float) -> float:
+    """Distance of the vertex nearest to the obstacle, m (this script's own geometry, not the library's)."""
+    ob = sim.scene.data["obstacles"][0]
+    shape = ob["shape"]
+    if shape == "sphere":
+        c = np.asarray(ob["center"]) + t * np.asarray(ob["velocity"])
+        d = np.linalg.norm(x - c, axis=1) - ob["radius"]
+    elif shape == "plane":
+        d = (x - np.asarray(ob["point"])) @ np.asarray(ob["normal"])
+    else:   # boxes, cone, capsule, meshes: distance to a dense surface sample (trimesh)
+        d = _sample_distance(sim, x)
+    return float(np.min(d))
+
+
+def _sample_distance(sim: ic.Simulator, x: np.ndarray) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    from implicit_cloth.render import obstacle_triangles
+
+    ob = sim.scene.data["obstacles"][0]
+    tris = obstacle_triangles(ob, sim.time, (x.mean(axis=0), 2.0))
+    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    rng = np.random.default_rng(0)
+    u = rng.random((len(tris), 64, 2))
+    flip = u.sum(axis=2) > 1
+    u[flip] = 1 - u[flip]
+    pts = a[:, None] + u[..., :1] * (b - a)[:, None] + u[..., 1:] * (c - a)[:, None]
+    d, _ = cKDTree(np.concatenate([pts.reshape(-1, 3), tris.reshape(-1, 3)])).query(x)
+    return d
+
+
+def run_row(spec: dict) -> dict:
+    """Simulate one row's scene, judging every kept frame (60 Hz) from its state."""
+    folder = Path(spec.get("mesh_dir") or ".")
+    sim = ic.Simulator(ic.Scene.from_dict(spec["scene"], base_dir=folder))
+    judge = Judge(sim)
+    e0, _ = judge(sim.positions, sim.velocities)
+    seen = {"rise": -math.inf, "strain": 0.0, "frames": 0}
+
+    def on_frame(state) -> None:
+        e, s = judge(state.x, state.v)
+        seen["rise"], seen["strain"] = max(seen["rise"], e - e0), max(seen["strain"], s)
+        seen["frames"] += 1
+
+    t0 = time.perf_counter()
+    try:
+        report = sim.run(on_frame=on_frame).report
+    except ic.DivergenceError as exc:
+        report = exc.trajectory.report if exc.trajectory is not None else {"status": "diverged"}
+    wall = time.perf_counter() - t0
+    done = max(seen["frames"] - 1, 1)
+    ad = report.get("adaptive") or {}
+    x, v = sim.positions, sim.velocities
+    speed = np.linalg.norm(v, axis=1)
+    vmax, vrms = float(speed.max()), float(np.sqrt(np.mean(speed**2)))
+    mass = float(sim.model.total_mass)
+    row = {k: spec[k] for k in ("group", "shape", "n", "dt", "material", "speed")}
+    row.update({"rise_J": seen["rise"], "rise_frac": seen["rise"] / (mass * G * 1.0), "mass": mass,
+                "max_strain": seen["strain"], "substeps_per_frame": ad.get("substeps", done) / done,
+                "ms_per_frame": 1e3 * wall / done, "vmax_end": vmax, "vrms_end": vrms, "frames": done,
+                "report_status": report.get("status"), "report_reason": report.get("reason", "")})
+    if spec["group"] != "moving":
+        gap = on_obstacle(sim, x, sim.time) if report.get("status") != "diverged" else math.inf
+        top = SHAPES[spec["shape"]][1]
+        on = gap < ON_DISTANCE and float(x[:, 2].mean()) > top - ON_DROP
+        row["end_gap"], row["end_centroid_z"] = gap, float(x[:, 2].mean())
+        row["end"] = "slid off" if not on else "resting on it" if vrms < REST_SPEED else "still moving"
+    else:
+        row["end"] = "-"
+        row["max_stretch"] = 1.0 + seen["strain"]
+    return row
+
+
+def specs(args: argparse.Namespace, mesh_dir: Path) -> list[dict]:
+    out = []
+    base = {"mesh_dir": str(mesh_dir), "material": None, "speed": None}
+    for shape in args.shapes:
+        for n in args.sizes:
+            for fps in args.dts:
+                out.append({**base, "group": "static", "shape": shape, "n": n, "dt": 1.0 / fps,
+                            "scene": static_scene(shape, n, 1.0 / fps, args.duration)})
+    for mat in args.materials:
+        for shape in MATERIAL_SHAPES:
+            out.append({**base, "group": "material", "shape": shape, "n": args.material_size, "dt": 1.0 / 60,
+                        "material": mat, "scene": static_scene(shape, args.material_size, 1.0 / 60, args.duration,
+                                                               mat)})
+    for speed in args.speeds:
+        for n in args.moving_sizes:
+            out.append({**base, "group": "moving", "shape": "sphere", "n": n, "dt": 1.0 / 30, "speed": speed,
+                        "scene": moving_scene(speed, n, 1.0 / 30, args.moving_duration)})
+    return out
+
+
+def markdown(res: dict) -> str:
+    lines = [f"Contact at large steps, judged from the states by `benchmarks/contact_energy.py` "
+             f"({'quick' if res['quick'] else 'full'} run, {res['wall_s']:.0f} s). Cloth 1 m x 1 m; static rows "
+             f"{MASS} kg, k = 1000 / 333 / 10 N/m (or the material preset), dropped {DROP} m, friction {FRICTION}, "
+             f"thickness {THICKNESS * 1e3:g} mm, {res['duration']:g} s. rise: largest E(t) - E(0) over m g (1 m) "
+             f"(goal <= {100 * RISE_GOAL:g} %).", ""]
+    lines += ["| group | shape | grid | dt | material | rise | max strain | end | substeps/frame | ms/frame | report |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in res["rows"]:
+        if r["group"] == "moving":
+            continue
+        ok = "" if r["rise_frac"] <= RISE_GOAL else " **x**"
+        lines.append(f"| {r['group']} | {r['shape']} | {r['n']}² | 1/{round(1 / r['dt'])} | {r['material'] or '-'} | "
+                     f"{100 * r['rise_frac']:.2f} %{ok} | {r['max_strain']:.3f} | {r['end']} | "
+                     f"{r['substeps_per_frame']:.2f} | {r['ms_per_frame']:.0f} | {r['report_status']} |")
+    mov = [r for r in res["rows"] if r["group"] == "moving"]
+    if mov:
+        lines += ["", f"Moving sphere (r = 0.15 m) through a cloth hanging from two corners, dt 1/30 s, "
+                      f"{res['moving_duration']:g} s; goal: no spring beyond {STRETCH_GOAL}x its rest length.", "",
+                  "| speed | grid | max stretch | substeps/frame | ms/frame | report |", "|---|---|---|---|---|---|"]
+        for r in mov:
+            ok = "" if r["max_stretch"] <= STRETCH_GOAL else " **x**"
+            lines.append(f"| {r['speed']:g} m/s | {r['n']}² | {r['max_stretch']:.2f}x{ok} | "
+                         f"{r['substeps_per_frame']:.2f} | {r['ms_per_frame']:.0f} | {r['report_status']} |")
+    st = [r for r in res["rows"] if r["group"] != "moving"]
+    if st:
+        worst = max(st, key=lambda r: r["rise_frac"])
+        dt60 = [r["substeps_per_frame"] for r in st if abs(r["dt"] - 1 / 60) < 1e-12 and r["group"] == "static"]
+        lines += ["", f"Worst static rise: {100 * worst['rise_frac']:.2f} % ({worst['shape']}, {worst['n']}², "
+                      f"dt 1/{round(1 / worst['dt'])}). Rows at or below the goal: "
+                      f"{sum(r['rise_frac'] <= RISE_GOAL for r in st)} of {len(st)}."]
+        if dt60:
+            lines.append(f"Mean substeps per frame over the static rows at dt 1/60: {np.mean(dt60):.2f}.")
+    return "\n".join(lines) + "\n"
+
+
+def plot(res: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5), gridspec_kw={"width_ratios": [2, 1]})
+    st = [r for r in res["rows"] if r["group"] != "moving"]
+    labels = sorted({(r["shape"] if r["group"] == "static" else f"{r['shape']}\n{r['material']}") for r in st},
+                    key=lambda s: list(SHAPES).index(s.split("\n")[0]) * 10 + len(s))
+    pos = {s: k for k, s in enumerate(labels)}
+    sizes = sorted({r["n"] for r in st})
+    for r in st:
+        lab = r["shape"] if r["group"] == "static" else f"{r['shape']}\n{r['material']}"
+        x = pos[lab] + 0.12 * (sizes.index(r["n"]) - (len(sizes) - 1) / 2)
+        marker = "o" if abs(r["dt"] - 1 / 60) < 1e-12 else "s"
+        color = plt.cm.viridis(sizes.index(r["n"]) / max(len(sizes) - 1, 1))
+        a.scatter(x, 100 * max(r["rise_frac"], 1e-4), marker=marker, color=color, edgecolor="k", linewidth=0.4)
+    a.axhline(100 * RISE_GOAL, color="tab:red", linestyle="--", label=f"goal {100 * RISE_GOAL:g} % of m g (1 m)")
+    a.set_yscale("log")
+    a.set_xticks(range(len(labels)), labels, rotation=45, ha="right", fontsize=8)
+    a.set_ylabel("largest energy rise, % of m g (1 m)")
+    for n in sizes:
+        a.scatter([], [], color=plt.cm.viridis(sizes.index(n) / max(len(sizes) - 1, 1)), label=f"{n}²")
+    a.scatter([], [], marker="o", color="w", edgecolor="k", label="dt 1/60")
+    a.scatter([], [], marker="s", color="w", edgecolor="k", label="dt 1/30")
+    a.legend(fontsize=7, ncol=2)
+    a.set_title("static drapes (values below 1e-4 % drawn at 1e-4 %)")
+    mov = [r for r in res["rows"] if r["group"] == "moving"]
+    for n in sorted({r["n"] for r in mov}):
+        rr = sorted((r for r in mov if r["n"] == n), key=lambda r: r["speed"])
+        b.plot([r["speed"] for r in rr], [r["max_stretch"] for r in rr], "o-", label=f"{n}²")
+    b.axhline(STRETCH_GOAL, color="tab:red", linestyle="--", label=f"goal {STRETCH_GOAL}x")
+    b.set_xlabel("sphere speed, m/s")
+    b.set_ylabel("largest spring stretch l / L0")
+    b.set_title("sphere through a hanging cloth, dt 1/30")
+    if mov:
+        b.legend(fontsize=8)
+    fig.tight_layout()
+    save_png(fig, path)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="CI smoke: a few small, short rows")
+    p.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=list(SHAPES))
+    p.add_argument("--sizes", nargs="+", type=int, default=[32, 64, 96])
+    p.add_argument("--dts", nargs="+", type=float, default=[60, 30], help="1/dt values, Hz")
+    p.add_argument("--materials", nargs="*", default=list(ic.MATERIALS))
+    p.add_argument("--material-size", type=int, default=64)
+    p.add_argument("--speeds", nargs="*", type=float, default=list(SPEEDS))
+    p.add_argument("--moving-sizes", nargs="+", type=int, default=[32, 64, 96])
+    p.add_argument("--duration", type=float, default=3.0, help="static rows, s")
+    p.add_argument("--moving-duration", type=float, default=1.0, help="moving rows, s")
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.shapes, args.sizes, args.dts = ["sphere", "box_face", "mesh_box"], [12], [30]
+        args.materials, args.speeds, args.moving_sizes = [], [10.0], [12]
+        args.duration, args.moving_duration = 1.0, 0.3
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        rows_in = specs(args, mesh_files(Path(tmp)))
+        if args.workers > 1:
+            with ProcessPoolExecutor(args.workers) as pool:
+                rows = list(progress(pool.map(run_row, rows_in), total=len(rows_in), desc="contact"))
+        else:
+            rows = [run_row(s) for s in progress(rows_in, desc="contact")]
+    res = {"benchmark": "contact_energy", "quick": args.quick, "machine": machine(), "duration": args.duration,
+           "moving_duration": args.moving_duration, "wall_s": time.perf_counter() - t0, "rows": rows,
+           "goals": {"rise_frac": RISE_GOAL, "stretch": STRETCH_GOAL}}
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_outputs(args.out, "contact_energy", res, markdown(res))
+    plot(res, args.out / "contact_energy.png")
+    print(markdown(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
