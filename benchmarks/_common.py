@@ -15,7 +15,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 import implicit_cloth as ic  # noqa: E402
-from implicit_cloth.io import atomic_write, save_json  # noqa: E402
+from implicit_cloth.files import atomic_write, save_json  # noqa: E402
 
 
 def machine() -> dict:

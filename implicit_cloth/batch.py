@@ -57,7 +57,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 from .errors import DivergenceError, SceneError
-from .io import atomic_write, save_json
+from .files import atomic_write, save_json
 from .scene import Scene, _check_keys, _fail, _fmt, load_scene, tomllib
 
 #: Columns of summary.csv after the swept keys and ``status``, ``reason``, ``wall_s``.

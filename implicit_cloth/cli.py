@@ -49,7 +49,7 @@ from typing import Any, Sequence
 
 from . import __version__
 from .errors import DivergenceError, SceneError
-from .io import save_json
+from .files import save_json
 from .scene import INTEGRATORS, load_scene
 from .simulator import Simulator, Trajectory
 
@@ -191,7 +191,7 @@ def _write_outputs(out: Path, traj: Trajectory, scene_data: dict[str, Any]) -> t
     """Write DIR/trajectory.npz and DIR/report.json as a pair.
 
     Both are first written completely to temporary files in DIR (each
-    atomically, see :mod:`implicit_cloth.io`), then renamed into place, so a
+    atomically, see :mod:`implicit_cloth.files`), then renamed into place, so a
     failure while writing either (a full disk) leaves the previous pair as it
     was, never a new trajectory beside an old report, and removes the
     temporary files.

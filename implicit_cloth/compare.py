@@ -15,7 +15,7 @@ import numpy as np
 
 from .batch import HEALTH_COLUMNS, read_summary
 from .errors import SceneError
-from .io import atomic_write
+from .files import atomic_write
 from .scene import _fmt
 
 #: Figures plotted by default (those with at least one value).

@@ -9,7 +9,7 @@ from typing import Sequence
 import numpy as np
 
 from .errors import SceneError
-from .io import atomic_write
+from .files import atomic_write
 from .scene import _fmt
 
 FORMATS: tuple[str, ...] = ("obj", "ply", "glb")

@@ -28,7 +28,7 @@ import numpy as np
 
 from .errors import SceneError
 from .export import load_run, select_frames
-from .io import atomic_write
+from .files import atomic_write
 from .scene import _fmt
 
 CLOTH_COLOR = np.array([0.27, 0.51, 0.71])

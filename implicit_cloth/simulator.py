@@ -16,7 +16,7 @@ from . import diagnostics
 from .adaptive import AdaptiveStats, StepController
 from .errors import DivergenceError, SolverWarning
 from .integrators import make_integrator
-from .io import save_npz
+from .files import save_npz
 from .model import Model, State
 from .scene import Scene, _number, _run_length, load_scene
 

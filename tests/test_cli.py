@@ -222,7 +222,7 @@ def test_outputs_get_a_normal_file_mode(tmp_path):
     import os
     import stat
 
-    from implicit_cloth.io import save_json
+    from implicit_cloth.files import save_json
 
     path = save_json(tmp_path / "r.json", {"a": 1})
     mask = os.umask(0)

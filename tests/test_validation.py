@@ -21,7 +21,7 @@ import trimesh
 
 import implicit_cloth as ic
 from implicit_cloth import cli, cloth
-from implicit_cloth import io as icio
+from implicit_cloth import files as icio
 
 INF, NAN = float("inf"), float("nan")
 
@@ -454,7 +454,7 @@ class _FullDisk:
 
 
 def _disk_full_on_open_number(monkeypatch, k, budget=10):
-    """From the k-th file opened for writing by implicit_cloth.io (1-based), the disk is full."""
+    """From the k-th file opened for writing by implicit_cloth.files (1-based), the disk is full."""
     real = os.fdopen
     count = {"n": 0}
 
