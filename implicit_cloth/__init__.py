@@ -13,17 +13,20 @@ Public API::
 All quantities are SI: metres, seconds, kilograms, newtons.
 """
 
-from .errors import DivergenceError, MeshWarning, SceneError, SolverWarning
-from .materials import MATERIALS, Material
-from .scene import INTEGRATORS, Scene, load_scene
-from .simulator import Simulator, Trajectory
-
+#: The package version (the one place it is written; pyproject.toml reads it from here).
 __version__ = "0.1.0"
+
+from .errors import DivergenceError, InputError, MeshWarning, SceneError, SolverWarning  # noqa: E402
+from .integrators import INTEGRATORS  # noqa: E402
+from .materials import MATERIALS, Material  # noqa: E402
+from .scene import Scene, load_scene  # noqa: E402
+from .simulator import Simulator, Trajectory  # noqa: E402
 
 __all__ = [
     "INTEGRATORS",
     "MATERIALS",
     "DivergenceError",
+    "InputError",
     "Material",
     "MeshWarning",
     "Scene",

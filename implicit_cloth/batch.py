@@ -56,9 +56,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
+from .config.validate import check_keys as _check_keys
+from .config.validate import fail as _fail
+from .config.validate import fmt as _fmt
 from .errors import DivergenceError, SceneError
 from .files import atomic_write, save_json
-from .scene import Scene, _check_keys, _fail, _fmt, load_scene, tomllib
+from .scene import Scene, load_scene, tomllib
 
 #: Columns of summary.csv after the swept keys and ``status``, ``reason``, ``wall_s``.
 HEALTH_COLUMNS: tuple[str, ...] = (

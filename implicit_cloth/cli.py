@@ -50,7 +50,8 @@ from typing import Any, Sequence
 from . import __version__
 from .errors import DivergenceError, SceneError
 from .files import save_json
-from .scene import INTEGRATORS, load_scene
+from .integrators import INTEGRATORS
+from .scene import load_scene
 from .simulator import Simulator, Trajectory
 
 PROG = "implicit-cloth"

@@ -14,9 +14,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from .batch import HEALTH_COLUMNS, read_summary
-from .errors import SceneError
+from .errors import SceneError, show
 from .files import atomic_write
-from .scene import _fmt
 
 #: Figures plotted by default (those with at least one value).
 DEFAULT_METRICS: tuple[str, ...] = ("energy_drift_rel", "max_strain", "mean_iterations", "wall_s")
@@ -64,7 +63,7 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
     keys: list[str] = list(summary.get("keys", []))
     rows = [r for r in summary.get("cases", []) if r.get("status") in ("ok", "diverged")]
     if not rows:
-        raise SceneError(f"DIR: the summary has no finished case (ok or diverged) to plot, got {_fmt(str(out))}")
+        raise SceneError(f"DIR: the summary has no finished case (ok or diverged) to plot, got {show(str(out))}")
     numeric = [k for k in keys if _numeric([r.get(k) for r in rows]) and len({r.get(k) for r in rows}) > 1]
     if x is None:
         if not numeric:
@@ -72,18 +71,18 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
                              f"{', '.join(keys)}), got None")
         x = "simulation.dt" if "simulation.dt" in numeric else numeric[0]
     elif x not in keys:
-        raise SceneError(f"--x: must be one of the swept keys {', '.join(keys)}, got {_fmt(x)}")
+        raise SceneError(f"--x: must be one of the swept keys {', '.join(keys)}, got {show(x)}")
     elif x not in numeric:
-        raise SceneError(f"--x: the values of {x} are not numbers (or all equal), got {_fmt(x)}")
+        raise SceneError(f"--x: the values of {x} are not numbers (or all equal), got {show(x)}")
     if by is not None and (by not in keys or by == x):
         raise SceneError(f"--by: must be one of the swept keys other than --x ({', '.join(k for k in keys if k != x)}), "
-                         f"got {_fmt(by)}")
+                         f"got {show(by)}")
     allowed = ("wall_s", *HEALTH_COLUMNS)
     if metrics is None:
         metrics = [m for m in DEFAULT_METRICS if any(r.get(m) is not None for r in rows)]
     for k, m in enumerate(metrics):
         if m not in allowed:
-            raise SceneError(f"--metrics[{k}]: must be one of {', '.join(allowed)}, got {_fmt(m)}")
+            raise SceneError(f"--metrics[{k}]: must be one of {', '.join(allowed)}, got {show(m)}")
 
     # one line per combination of the keys other than x (so that a line never mixes cases);
     # with --by, lines share the colour (and the legend entry) of their --by value

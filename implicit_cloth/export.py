@@ -8,9 +8,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import SceneError
+from .errors import SceneError, show
 from .files import atomic_write
-from .scene import _fmt
 
 FORMATS: tuple[str, ...] = ("obj", "ply", "glb")
 
@@ -25,12 +24,12 @@ def load_run(run_dir: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, n
     """
     p = Path(run_dir) / "trajectory.npz"
     if not p.is_file():
-        raise SceneError(f"RUN_DIR: no trajectory.npz (not a run output directory), got {_fmt(str(run_dir))}")
+        raise SceneError(f"RUN_DIR: no trajectory.npz (not a run output directory), got {show(str(run_dir))}")
     try:
         with np.load(p) as z:
             return np.asarray(z["positions"], float), np.asarray(z["times"], float), np.asarray(z["faces"], np.int64)
     except (OSError, ValueError, KeyError) as exc:
-        raise SceneError(f"RUN_DIR: cannot read {p} ({' '.join(str(exc).split())}), got {_fmt(str(run_dir))}") from None
+        raise SceneError(f"RUN_DIR: cannot read {p} ({' '.join(str(exc).split())}), got {show(str(run_dir))}") from None
 
 
 def select_frames(n_frames: int, frames: Sequence[int] | None) -> list[int]:
@@ -72,7 +71,7 @@ def export_run(run_dir: str | os.PathLike[str], fmt: str = "obj", out: str | os.
     import trimesh
 
     if fmt not in FORMATS:
-        raise SceneError(f"--format: must be one of {', '.join(FORMATS)}, got {_fmt(fmt)}")
+        raise SceneError(f"--format: must be one of {', '.join(FORMATS)}, got {show(fmt)}")
     positions, times, faces = load_run(run_dir)
     idx = select_frames(len(positions), frames)
     out = Path(out) if out is not None else Path(run_dir) / "export"

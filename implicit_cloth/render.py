@@ -26,10 +26,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .errors import SceneError
+from .errors import SceneError, show
 from .export import load_run, select_frames
 from .files import atomic_write
-from .scene import _fmt
 
 CLOTH_COLOR = np.array([0.27, 0.51, 0.71])
 OBSTACLE_COLOR = np.array([0.75, 0.72, 0.68])
@@ -57,7 +56,7 @@ def _local_triangles(spec: Mapping[str, Any]) -> np.ndarray:
     elif shape == "capsule":
         m = trimesh.creation.capsule(height=float(spec["height"]), radius=float(spec["radius"]), count=[16, 16])
     else:   # mesh
-        from .scene import load_obstacle_mesh
+        from .geometry import load_obstacle_mesh
 
         verts, faces = load_obstacle_mesh(spec["path"])
         return np.asarray(verts, float)[faces] * float(spec["scale"])
@@ -74,8 +73,9 @@ def obstacle_triangles(obstacle: Mapping[str, Any], t: float, extent: tuple[np.n
     for the size and place of a plane's square.
     """
     from .collision.shapes import placement
+    from .config.registry import OBSTACLE_SHAPES
     from .errors import SceneError
-    from .scene import OBSTACLE_SHAPES, _obstacles
+    from .obstacles import validate_obstacles
 
     shape = obstacle.get("shape")
     if shape not in OBSTACLE_SHAPES:
@@ -83,7 +83,7 @@ def obstacle_triangles(obstacle: Mapping[str, Any], t: float, extent: tuple[np.n
                       RenderWarning, stacklevel=3)
         return None
     try:
-        spec = _obstacles([obstacle])[0]
+        spec = validate_obstacles([obstacle])[0]
         motion = placement(spec)
         if shape == "plane":
             c, half = extent
@@ -226,11 +226,11 @@ def render_run(run_dir: str | os.PathLike[str], out: str | os.PathLike[str] | No
         Files written, each atomically.
     """
     if movie not in MOVIES:
-        raise SceneError(f"--movie: must be one of {', '.join(MOVIES)}, got {_fmt(movie)}")
+        raise SceneError(f"--movie: must be one of {', '.join(MOVIES)}, got {show(movie)}")
     if movie == "mp4" and shutil.which("ffmpeg") is None:
         raise SceneError("--movie: mp4 needs ffmpeg on the PATH (use --movie gif), got 'mp4'")
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
-        raise SceneError(f"--fps: must be a finite number > 0, got {_fmt(fps)}")
+        raise SceneError(f"--fps: must be a finite number > 0, got {show(fps)}")
     run_dir = Path(run_dir)
     positions, times, faces = load_run(run_dir)
     n = len(positions)

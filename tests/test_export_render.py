@@ -173,10 +173,10 @@ def test_render_places_obstacles_where_the_collider_has_them(motion):
     """The drawn box's corners are the collision code's box corners at the same time (same motion code)."""
     from implicit_cloth.collision.shapes import build
     from implicit_cloth.render import obstacle_triangles
-    from implicit_cloth.scene import _obstacles
+    from implicit_cloth.obstacles import validate_obstacles
 
     table = {"shape": "box", "size": [0.2, 0.4, 0.6], **motion}
-    shape, mo = build(_obstacles([table])[0])
+    shape, mo = build(validate_obstacles([table])[0])
     for t in (0.0, 0.3, 0.7):
         drawn = np.unique(obstacle_triangles(table, t, (np.zeros(3), 1.0)).reshape(-1, 3).round(12), axis=0)
         corners = mo.to_world(shape.feature_points, t)

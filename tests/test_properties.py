@@ -28,6 +28,7 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 import implicit_cloth as ic
+from implicit_cloth import config
 from implicit_cloth import scene as sc
 
 SETTINGS_VALID = settings(max_examples=300, deadline=None, derandomize=True,
@@ -121,7 +122,7 @@ def valid_scenes(draw):
     if draw(st.booleans()):
         scene["solver"] = {"tolerance": draw(log_uniform(-8, -1)),
                            "max_iterations": draw(st.integers(1, 1000)),
-                           "preconditioner": draw(st.sampled_from(sc.PRECONDITIONERS))}
+                           "preconditioner": draw(st.sampled_from(config.PRECONDITIONERS.names()))}
     return scene
 
 
@@ -202,9 +203,9 @@ SCHEMA = {
     **{f"cloth.springs.{k}.{p}": "nonneg" for k in sc.SPRING_KINDS for p in ("stiffness", "damping")},
     "effects.gravity": "vec3", "effects.drag": "nonneg", "effects.wind.velocity": "vec3",
 }
-TABLES = {"": sc._TOP_KEYS, "simulation": sc._SIM_KEYS, "solver": sc._SOLVER_KEYS, "cloth": sc._CLOTH_KEYS,
-          "cloth.springs": sc.SPRING_KINDS, "effects": sc._EFFECT_KEYS, "effects.wind": ("velocity",),
-          "simulation.adaptive": sc._ADAPTIVE_KEYS, "simulation.strain_limit": sc._STRAIN_LIMIT_KEYS,
+TABLES = {"": sc.TOP_KEYS, "simulation": sc.SIM_KEYS, "solver": sc.SOLVER_KEYS, "cloth": sc.CLOTH_KEYS,
+          "cloth.springs": sc.SPRING_KINDS, "effects": config.EFFECTS.names(), "effects.wind": ("velocity",),
+          "simulation.adaptive": sc.ADAPTIVE_KEYS, "simulation.strain_limit": sc.STRAIN_LIMIT_KEYS,
           **{f"cloth.springs.{k}": ("stiffness", "damping") for k in sc.SPRING_KINDS}}
 
 

@@ -23,6 +23,17 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from ..config.registry import EFFECTS
+from . import drag, gravity, wind
+
+# The [effects] table, in evaluation order: each entry checks its own value (``validate(path, value)``);
+# ``requires`` names the entries it acts through (wind has no force of its own: drag acts relative to it).
+EFFECTS.register("gravity", validate=gravity.validate)
+EFFECTS.register("drag", validate=drag.validate)
+EFFECTS.register("wind", validate=wind.validate, requires=(
+    "drag", "wind acts through air drag; set effects.drag, the drag coefficient in N*s/m^3, for effects.wind "
+            "to have an effect"))
+
 #: effect name -> (module, builder function); modules are imported on demand only.
 _REGISTRY: dict[str, tuple[str, str]] = {
     "gravity": ("implicit_cloth.effects.gravity", "build"),

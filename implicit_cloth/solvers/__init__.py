@@ -4,8 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
+from ..config.registry import PRECONDITIONERS
 from .accel import numba_available, set_default_accelerator
 from .pcg import BlockJacobi, Filter, SolveResult, filtered_pcg
+
+# solver.preconditioner: the names scene validation accepts, the default first
+PRECONDITIONERS.register("multigrid", default=True)
+PRECONDITIONERS.register("block_jacobi")
 
 __all__ = ["BlockJacobi", "Filter", "SolveResult", "filtered_pcg", "make_preconditioner", "numba_available",
            "set_default_accelerator"]
