@@ -60,7 +60,8 @@ from .config.validate import check_keys as _check_keys
 from .config.validate import fail as _fail
 from .config.validate import fmt as _fmt
 from .errors import DivergenceError, SceneError
-from .files import atomic_write, save_json
+from .files import atomic_write, save_json, write_run
+from .report import RunReport
 from .scene import Scene, load_scene, tomllib
 
 #: Columns of summary.csv after the swept keys and ``status``, ``reason``, ``wall_s``.
@@ -174,17 +175,16 @@ def _key_only(where: str) -> str:
 
 
 def _where_error(where: str, key: str, exc: SceneError) -> SceneError:
-    """Re-word a scene error raised by overriding ``key`` so that it names its place in the sweep file."""
-    msg = str(exc)
-    unknown = re.match(r"^(\S+): unknown key(.*)$", msg)
-    if unknown and (key == unknown.group(1) or key.startswith(unknown.group(1) + ".")):
-        p = unknown.group(1)
-        where = _key_only(where)
-        return SceneError(f"{where}: unknown key" + ("" if p == key else f" {p!r}") + unknown.group(2))
-    for sep in (": ", "[", "."):
-        if msg.startswith(key + sep):
-            return SceneError(where + msg[len(key):])
-    return SceneError(f"{where}: makes the scene invalid ({msg})")
+    """Re-word a scene error raised by overriding ``key`` so that it names its place in the sweep file.
+
+    Read from the error's fields (``path``, ``message``, ``value``), never from its text.
+    """
+    if exc.message.startswith("unknown key") and (key == exc.path or key.startswith(exc.path + ".")):
+        named = "" if exc.path == key else f" {exc.path!r}"
+        return SceneError(_key_only(where), "unknown key" + named + exc.message[len("unknown key"):])
+    if exc.path == key or exc.path.startswith((key + "[", key + ".")):
+        return SceneError(where + exc.path[len(key):], exc.message, exc.value)
+    return SceneError(where, f"makes the scene invalid ({exc})")
 
 
 def _apply(base_raw: Mapping[str, Any], overrides: Mapping[str, Any], base_dir: Path | None,
@@ -204,10 +204,9 @@ def _apply(base_raw: Mapping[str, Any], overrides: Mapping[str, Any], base_dir: 
     try:
         return Scene(raw, base_dir=base_dir)
     except SceneError as exc:
-        where_path = str(exc).split(": ", 1)[0]
         for key in overrides:          # name the override the error is about, if it is one
-            if (where_path == key or where_path.startswith((key + "[", key + "."))
-                    or (key.startswith(where_path + ".") and ": unknown key" in str(exc))):
+            if (exc.path == key or exc.path.startswith((key + "[", key + "."))
+                    or (key.startswith(exc.path + ".") and exc.message.startswith("unknown key"))):
                 raise _where_error(where(key), key, exc) from None
         if label is None:
             label = where(next(iter(overrides))) if overrides else "base"
@@ -357,7 +356,7 @@ def _pin_blas() -> None:
     threadpool_limits(limits=1, user_api="blas")
 
 
-def _health(report: Mapping[str, Any]) -> dict[str, Any]:
+def health(report: RunReport) -> dict[str, Any]:
     """Health figures of a run report (the summary's last columns).
 
     ``energy_drift`` = E_total(end) - E_total(0) - W_pins(end), J, and
@@ -366,21 +365,19 @@ def _health(report: Mapping[str, Any]) -> dict[str, Any]:
     solver figures for implicit methods (empty otherwise);
     ``max_penetration`` (m) from the collision report, 0 without obstacles.
     """
-    fr = report.get("frames") or {}
-    total = fr.get("total") or []
     out: dict[str, Any] = {k: None for k in HEALTH_COLUMNS}
-    out["steps"] = report.get("steps")
-    if total:
-        drift = total[-1] - total[0] - (fr.get("pin_work") or [0.0])[-1]
-        scale = (report.get("divergence_bound") or {}).get("energy_scale")
+    out["steps"] = report.steps
+    drift = report.energy_drift()
+    if drift is not None:
+        scale = report.divergence_bound.energy_scale
         out["energy_drift"] = drift
         out["energy_drift_rel"] = drift / scale if scale else None
-        out["max_strain"] = max(fr.get("max_strain") or [math.nan])
-    solver = report.get("solver")
-    if solver:
-        for k in ("mean_iterations", "max_iterations", "unconverged_steps"):
-            out[k] = solver.get(k)
-    out["max_penetration"] = float((report.get("collision") or {}).get("max_penetration", 0.0))
+        out["max_strain"] = max(report.frames.max_strain or [math.nan])
+    if report.solver:
+        out["mean_iterations"] = report.solver.mean_iterations
+        out["max_iterations"] = report.solver.max_iterations
+        out["unconverged_steps"] = report.solver.unconverged_steps
+    out["max_penetration"] = float(report.collision.max_penetration) if report.collision else 0.0
     return out
 
 
@@ -424,7 +421,7 @@ def run_case(case: Case) -> dict[str, Any]:
     report["case_id"] = case.case_id
     report["warnings"] = [" ".join(str(w.message).split()) for w in caught]
     row = {"case_id": case.case_id, **case.params, "status": status, "reason": reason, "wall_s": wall,
-           **(_health(report) if traj is not None else {k: None for k in HEALTH_COLUMNS})}
+           **(health(RunReport.from_dict(report)) if traj is not None else {k: None for k in HEALTH_COLUMNS})}
     result: dict[str, Any] = {"row": row, "report": report}
     if traj is not None:
         result["trajectory"] = {"positions": traj.positions, "times": traj.times, "faces": traj.faces}
@@ -453,7 +450,6 @@ def _digest(path: Path) -> dict[str, Any]:
 
 def store_result(out: Path, case: Case, result: Mapping[str, Any]) -> dict[str, Any]:
     """Write a case's result to ``out/<case-id>/``: the pair atomically, then the marker. Returns the row."""
-    from .cli import _write_outputs
     from .simulator import Trajectory
 
     case_dir = out / case.case_id
@@ -464,7 +460,7 @@ def store_result(out: Path, case: Case, result: Mapping[str, Any]) -> dict[str, 
     if "trajectory" in result:
         t = result["trajectory"]
         traj = Trajectory(t["positions"], t["times"], t["faces"], report)
-        files = _write_outputs(case_dir, traj, scene_data)
+        files = write_run(case_dir, traj, scene_data)
     else:   # failed: no trajectory; a stale one from an earlier attempt must not stand beside the report
         try:
             (case_dir / "trajectory.npz").unlink()

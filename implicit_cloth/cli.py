@@ -39,9 +39,7 @@ sweep's summary); each follows the same exit codes, one-line errors and
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 import traceback
 import warnings
 from pathlib import Path
@@ -49,8 +47,9 @@ from typing import Any, Sequence
 
 from . import __version__
 from .errors import DivergenceError, SceneError
-from .files import save_json
+from .files import write_run
 from .integrators import INTEGRATORS
+from .report import RunReport
 from .scene import load_scene
 from .simulator import Simulator, Trajectory
 
@@ -188,86 +187,58 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _write_outputs(out: Path, traj: Trajectory, scene_data: dict[str, Any]) -> tuple[Path, Path]:
-    """Write DIR/trajectory.npz and DIR/report.json as a pair.
-
-    Both are first written completely to temporary files in DIR (each
-    atomically, see :mod:`implicit_cloth.files`), then renamed into place, so a
-    failure while writing either (a full disk) leaves the previous pair as it
-    was, never a new trajectory beside an old report, and removes the
-    temporary files.
-    """
-    report = dict(traj.report)
-    report["scene"] = scene_data
-    targets = (out / "trajectory.npz", out / "report.json")
-    writers = (traj.save, lambda p: save_json(p, report))
-    staged: list[Path] = []
-    try:
-        for target, write in zip(targets, writers):
-            fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".new", dir=out)
-            os.close(fd)
-            staged.append(Path(tmp))
-            write(staged[-1])
-        for tmp, target in zip(staged, targets):
-            os.replace(tmp, target)
-    except BaseException:
-        for tmp in staged:
-            try:
-                tmp.unlink()
-            except OSError:
-                pass
-        raise
-    return targets
-
-
 def _fmt_e(x: float) -> str:
     return f"{x:.6g}"
 
 
 def _summary(traj: Trajectory, npz: Path, js: Path) -> str:
-    r = traj.report
-    fr = r.get("frames", {})
-    steps = int(r.get("steps", 0))
-    wall = float(r.get("wall_time", 0.0))
-    ms = 1e3 * wall / steps if steps else float("nan")
+    r = RunReport.from_dict(traj.report)
+    fr = r.frames
+    ms = 1e3 * r.wall_time / r.steps if r.steps else float("nan")
     lines = [
-        f"integrator   {r.get('integrator')}",
-        f"dt           {r.get('dt'):g} s",
-        f"vertices     {r.get('n_vertices')} ({r.get('n_pinned', 0)} pinned)",
-        f"steps        {steps}",
+        f"integrator   {r.integrator}",
+        f"dt           {r.dt:g} s",
+        f"vertices     {r.n_vertices} ({r.n_pinned} pinned)",
+        f"steps        {r.steps}",
         f"frames       {len(traj)} (t = {traj.times[0]:g} .. {traj.times[-1]:g} s)",
-        f"wall time    {wall:.3f} s ({ms:.3g} ms/step)",
+        f"wall time    {r.wall_time:.3f} s ({ms:.3g} ms/step)",
     ]
-    if fr.get("total"):
+    if fr.total:
         lines.append(
-            f"final energy kinetic {_fmt_e(fr['kinetic'][-1])} J, gravity {_fmt_e(fr['gravity'][-1])} J, "
-            f"springs {_fmt_e(fr['springs'][-1])} J, total {_fmt_e(fr['total'][-1])} J")
-        lines.append(f"max strain   {max(fr['max_strain']):.4g}")
-    s = r.get("solver")
-    if s:
-        lines.append(
-            f"solver       {s['preconditioner']} PCG ({s.get('accelerator', 'numpy')}), iterations mean {s['mean_iterations']:.1f} / "
-            f"max {s['max_iterations']}, max residual {s['max_residual']:.3g} (tolerance {s['tolerance']:g}), "
-            f"unconverged steps {s['unconverged_steps']}")
-    a = r.get("adaptive")
-    if a:
-        lines.append(f"adaptive     {a['substeps']} substeps, {a['retries']} retries, {a['forced']} forced, "
-                     f"smallest step {a['min_step']:g} s")
-    sl = r.get("strain_limit")
-    if sl:
-        lines.append(f"strain limit {sl['max_strain']:g}: {sl['springs_limited']} over-stretched springs in "
-                     f"{sl['steps_limited']} steps, max strain after limiting {sl['max_strain_after']:.4g}")
-    c = r.get("collision")
-    if c:
-        lines.append(
-            f"collision    {', '.join(c['obstacles'])}: {c['contacts']} contacts, {c['mean_candidates']:.0f} "
-            f"candidates/step, max penetration {c['max_penetration']:.3g} m, fail-safe steps {c['failsafe_steps']}, "
-            f"{1e3 * c['mean_time_per_step']:.1f} ms/step")
-    status = r.get("status")
-    lines.append(f"status       {status}" + (f" ({r['reason']})" if r.get("reason") else ""))
+            f"final energy kinetic {_fmt_e(fr.kinetic[-1])} J, gravity {_fmt_e(fr.gravity[-1])} J, "
+            f"springs {_fmt_e(fr.springs[-1])} J, total {_fmt_e(fr.total[-1])} J")
+        lines.append(f"max strain   {max(fr.max_strain):.4g}")
+    lines += _section_lines(r)
+    lines.append(f"status       {r.status}" + (f" ({r.reason})" if r.reason else ""))
     lines.append(f"trajectory   {npz}")
     lines.append(f"report       {js}")
     return "\n".join(lines)
+
+
+def _section_lines(r: RunReport) -> list[str]:
+    """Summary lines of the report's optional sections: solver, adaptive, strain limit, collision."""
+    lines = []
+    s = r.solver
+    if s:
+        lines.append(
+            f"solver       {s.preconditioner} PCG ({s.accelerator}), iterations mean {s.mean_iterations:.1f} / "
+            f"max {s.max_iterations}, max residual {s.max_residual:.3g} (tolerance {s.tolerance:g}), "
+            f"unconverged steps {s.unconverged_steps}")
+    a = r.adaptive
+    if a:
+        lines.append(f"adaptive     {a.substeps} substeps, {a.retries} retries, {a.forced} forced, "
+                     f"smallest step {a.min_step:g} s")
+    sl = r.strain_limit
+    if sl:
+        lines.append(f"strain limit {sl.max_strain:g}: {sl.springs_limited} over-stretched springs in "
+                     f"{sl.steps_limited} steps, max strain after limiting {sl.max_strain_after:.4g}")
+    c = r.collision
+    if c:
+        lines.append(
+            f"collision    {', '.join(c.obstacles)}: {c.contacts} contacts, {c.mean_candidates:.0f} "
+            f"candidates/step, max penetration {c.max_penetration:.3g} m, fail-safe steps {c.failsafe_steps}, "
+            f"{1e3 * c.mean_time_per_step:.1f} ms/step")
+    return lines
 
 
 # --------------------------------------------------------------------------- run
@@ -326,7 +297,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"{PROG}: warning: {_one_line(w.message)}", file=sys.stderr)
 
     try:
-        npz, js = _write_outputs(out, traj, scene_data)
+        npz, js = write_run(out, traj, scene_data)
     except OSError as exc:
         _error(f"cannot write results to {str(out)!r} ({exc.strerror or exc})", debug)
         return EXIT_WRITE_FAILED

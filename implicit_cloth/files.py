@@ -1,7 +1,8 @@
-"""Atomic file output: write to a temporary file beside the target, then rename.
+"""Files: atomic output (write to a temporary file beside the target, then rename) and a run's pair of files.
 
 A killed process or a full disk therefore never leaves a half-written file in
-place of a previous good one.
+place of a previous good one. :func:`write_run` writes a run's
+``trajectory.npz`` and ``report.json`` as a pair; :func:`load_run` reads them back.
 """
 
 from __future__ import annotations
@@ -9,10 +10,13 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, IO
+from typing import IO, Any, Callable, Mapping, Protocol
 
 import numpy as np
+
+from .report import RunReport
 
 
 def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], None]) -> Path:
@@ -65,3 +69,67 @@ def _finite(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         return _finite(obj.tolist())
     return obj
+
+
+class RunLike(Protocol):
+    """What :func:`write_run` needs of a run: a :class:`~implicit_cloth.simulator.Trajectory` is one."""
+
+    report: Mapping[str, Any]
+
+    def save(self, path: str | os.PathLike[str]) -> Path: ...
+
+
+def write_run(out: str | os.PathLike[str], traj: RunLike, scene: Mapping[str, Any] | None
+              ) -> tuple[Path, Path]:
+    """Write ``out/trajectory.npz`` and ``out/report.json`` (the report with the normalised ``scene``) as a pair.
+
+    Both are first written completely to temporary files in ``out`` (each
+    atomically, see :func:`atomic_write`), then renamed into place, so a failure
+    while writing either (a full disk) leaves the previous pair as it was, never
+    a new trajectory beside an old report, and removes the temporary files.
+    The report is written through :class:`~implicit_cloth.report.RunReport`
+    (so a report that lacks a key is refused before anything is written).
+    """
+    out = Path(out)
+    report = RunReport.from_dict(traj.report).for_file(scene)
+    targets = (out / "trajectory.npz", out / "report.json")
+    writers = (traj.save, lambda p: save_json(p, report))
+    staged: list[Path] = []
+    try:
+        for target, write in zip(targets, writers):
+            fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".new", dir=out)
+            os.close(fd)
+            staged.append(Path(tmp))
+            write(staged[-1])
+        for tmp, target in zip(staged, targets):
+            os.replace(tmp, target)
+    except BaseException:
+        for tmp in staged:
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+        raise
+    return targets
+
+
+@dataclass
+class Run:
+    """A run read back from its directory by :func:`load_run`."""
+
+    positions: np.ndarray
+    times: np.ndarray
+    faces: np.ndarray
+    report: RunReport
+
+
+def load_run(out: str | os.PathLike[str]) -> Run:
+    """Read ``out/trajectory.npz`` and ``out/report.json`` (written by :func:`write_run`).
+
+    ``report.scene`` is the normalised scene: ``Scene.from_dict(run.report.scene)`` runs it again.
+    """
+    out = Path(out)
+    with np.load(out / "trajectory.npz") as z:
+        positions, times, faces = z["positions"], z["times"], z["faces"]
+    report = RunReport.from_dict(json.loads((out / "report.json").read_text()))
+    return Run(positions, times, faces, report)

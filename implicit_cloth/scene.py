@@ -20,10 +20,11 @@ from __future__ import annotations
 
 import copy
 import os
+import re
 from pathlib import Path
 from typing import Any, Mapping
 
-from .config.registry import EFFECTS, INTEGRATORS, PRECONDITIONERS
+from .config.registry import EFFECTS, INTEGRATORS, OBSTACLE_SHAPES, PRECONDITIONERS
 from .config.validate import boolean, check_keys, choice, fail, integer, is_list, number, vector
 from .errors import SceneError
 from .materials import MATERIALS
@@ -294,6 +295,59 @@ def _collision(d: Any) -> dict[str, Any]:
     return out
 
 
+def is_normalised(data: Any) -> bool:
+    """Whether ``data`` is a normalised scene (:attr:`Scene.data`, e.g. a ``report.json``'s ``"scene"``)."""
+    return isinstance(data, Mapping) and isinstance(data.get("cloth"), Mapping) and "kind" in data["cloth"]
+
+
+def _pins_source(groups: list[Any]) -> list[Any]:
+    """Normalised pin groups back to the ``cloth.pins`` list they came from (their ``paths`` say where)."""
+    items: dict[int, Any] = {}
+    for g in groups:
+        if not isinstance(g, Mapping):
+            return groups
+        paths = [_PIN_PATH.match(p) for p in g.get("paths", [])]
+        if not paths or not all(paths) or len(paths) != len(g.get("vertices", ())):
+            return [{k: v for k, v in h.items() if k != "paths"} for h in groups]
+        for m, v in zip(paths, g["vertices"]):
+            if m.group(2) is None:       # a loose entry: cloth.pins[k]
+                items[int(m.group(1))] = v
+            else:                        # a table: cloth.pins[k].vertices[j]
+                items.setdefault(int(m.group(1)), {"vertices": [], "velocity": g["velocity"]})["vertices"].append(v)
+    return [items[k] for k in sorted(items)]
+
+
+_PIN_PATH = re.compile(r"^cloth\.pins\[(\d+)\](\.vertices\[\d+\])?$")
+
+
+def source_of(data: Mapping[str, Any]) -> dict[str, Any]:
+    """A scene as given (a :class:`Scene` source) that normalises back to the normalised scene ``data``.
+
+    What normalisation adds is taken out again: ``cloth.kind``, an empty material, the pins' source
+    paths, the table of the collision stage of a scene without obstacles, and an obstacle's place and
+    motion when its keyframes give them. Everything else is already valid scene input, so that
+    ``Scene(source_of(s.data)).data == s.data`` and the run it describes is the same, bit for bit.
+    """
+    raw = copy.deepcopy(dict(data))
+    cloth = raw.get("cloth")
+    if isinstance(cloth, dict):
+        kind = cloth.pop("kind", None)
+        if kind not in ("grid", "mesh"):
+            raise fail("cloth.kind", "must be grid or mesh (a normalised scene's kind of cloth)", kind)
+        if cloth.get("material", "") is None:
+            del cloth["material"]
+        if isinstance(cloth.get("pins"), list):
+            cloth["pins"] = _pins_source(cloth["pins"])
+    if raw.get("collision", "") is None:
+        del raw["collision"]
+    for o in raw.get("obstacles") or []:
+        if isinstance(o, dict) and "keyframes" in o:
+            place = OBSTACLE_SHAPES[o["shape"]].meta["place"] if o.get("shape") in OBSTACLE_SHAPES else "center"
+            for key in ("velocity", "angular_velocity", place):
+                o.pop(key, None)
+    return raw
+
+
 # --------------------------------------------------------------------------- Scene
 class Scene:
     """A validated scene.
@@ -313,6 +367,8 @@ class Scene:
 
     def __init__(self, data: Mapping[str, Any], base_dir: str | os.PathLike[str] | None = None) -> None:
         self.base_dir = Path(base_dir) if base_dir is not None else None
+        if is_normalised(data):   # a scene written by a run (report.json["scene"]) loads back as it ran
+            data = source_of(data)
         self.source: dict[str, Any] = copy.deepcopy(dict(data)) if isinstance(data, Mapping) else data
         self.data = self._validate(data)
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import implicit_cloth as ic
-from implicit_cloth.cli import _write_outputs, main
+from implicit_cloth.cli import main
+from implicit_cloth.files import write_run
 
 trimesh = pytest.importorskip("trimesh")
 PIL_Image = pytest.importorskip("PIL.Image")
@@ -27,7 +28,7 @@ def run_dir(tmp_path, hanging_scene):
     traj = sim.run()
     out = tmp_path / "run"
     out.mkdir()
-    _write_outputs(out, traj, sim.scene.data)
+    write_run(out, traj, sim.scene.data)
     return out
 
 
@@ -172,8 +173,8 @@ def test_core_import_stays_light():
 def test_render_places_obstacles_where_the_collider_has_them(motion):
     """The drawn box's corners are the collision code's box corners at the same time (same motion code)."""
     from implicit_cloth.collision.shapes import build
-    from implicit_cloth.render import obstacle_triangles
     from implicit_cloth.obstacles import validate_obstacles
+    from implicit_cloth.render import obstacle_triangles
 
     table = {"shape": "box", "size": [0.2, 0.4, 0.6], **motion}
     shape, mo = build(validate_obstacles([table])[0])
