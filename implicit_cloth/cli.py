@@ -125,12 +125,15 @@ def build_parser() -> argparse.ArgumentParser:
     batch.set_defaults(handler=cmd_batch)
 
     export = sub.add_parser(
-        "export", help="write a run's frames as meshes (obj/ply per frame, glb one file)",
-        description="Export RUN_DIR/trajectory.npz as meshes with trimesh: obj or ply, one file per frame "
-                    "(frame_0000.obj ...), or glb, one file frames.glb with a node per frame. Metres.",
+        "export", help="write a run for other tools: animated usd, pc2 point cache, glb/gltf; obj/ply per frame",
+        description="Export RUN_DIR as an animation other tools open: usd (animation.usd: time-sampled points "
+                    "and normals, obstacles' transforms; z-up; needs the usd extra), pc2 (animation.pc2 + "
+                    "rest.obj, Blender's Mesh Cache modifier), glb or gltf (animation.glb / .gltf + .bin: "
+                    "morph-target animation, obstacles' node animation; y-up), or one mesh per frame: obj "
+                    "(normals, UVs; y-up) or ply (normals; z-up). Metres; the run's vertex numbering is kept.",
     )
     export.add_argument("run_dir", metavar="RUN_DIR", help="a run's output directory (run, or a batch case)")
-    export.add_argument("--format", default="obj", help="obj | ply | glb (default obj)")
+    export.add_argument("--format", default="usd", help="usd | pc2 | glb | gltf | obj | ply (default usd)")
     export.add_argument("--out", metavar="DIR", default=None, help="output directory (default RUN_DIR/export)")
     export.add_argument("--frames", metavar="K", type=int, nargs="+", default=None,
                         help="frame indices to export (negative from the end; default all)")
@@ -424,7 +427,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.out is not None and not _out_dir(Path(args.out), debug):
         return EXIT_BAD_INPUT
     code, files = _guarded(lambda: export_run(args.run_dir, args.format, out=args.out, frames=args.frames),
-                           debug, "meshes")
+                           debug, "meshes", extra="usd")
     if code is not None:
         return code
     where = files[0].parent if files else args.out

@@ -32,42 +32,6 @@ def run_dir(tmp_path, hanging_scene):
     return out
 
 
-def test_export_obj_ply_glb_open_in_trimesh(run_dir, capsys):
-    with np.load(run_dir / "trajectory.npz") as z:
-        pos, faces = z["positions"], z["faces"]
-    assert main(["export", str(run_dir), "--format", "obj"]) == 0
-    objs = sorted((run_dir / "export").glob("frame_*.obj"))
-    assert [p.name for p in objs] == [f"frame_{k:04d}.obj" for k in range(len(pos))]
-    for k, p in enumerate(objs):
-        m = trimesh.load(p, process=False)
-        np.testing.assert_allclose(m.vertices, pos[k], atol=1e-7)
-        np.testing.assert_array_equal(m.faces, faces)
-    assert main(["export", str(run_dir), "--format", "ply", "--frames", "0", "-1", "--out",
-                 str(run_dir / "ply")]) == 0
-    plys = sorted((run_dir / "ply").glob("*.ply"))
-    assert [p.name for p in plys] == ["frame_0000.ply", f"frame_{len(pos) - 1:04d}.ply"]
-    np.testing.assert_allclose(trimesh.load(plys[1], process=False).vertices, pos[-1], atol=1e-6)
-    assert main(["export", str(run_dir), "--format", "glb"]) == 0
-    scene = trimesh.load(run_dir / "export" / "frames.glb")
-    assert len(scene.geometry) == len(pos)
-    g = scene.geometry["frame_0003"]
-    np.testing.assert_allclose(g.vertices, pos[3], atol=1e-6)     # glb stores float32
-    with np.load(run_dir / "trajectory.npz") as z:
-        assert g.metadata["time"] == pytest.approx(z["times"][3])
-    assert [p.name for p in (run_dir / "export").glob("*.glb")] == ["frames.glb"]   # glb: one file
-    assert "wrote 1 glb file to" in capsys.readouterr().out
-    assert not [p for p in (run_dir / "export").iterdir() if p.name.startswith(".")]
-
-
-def test_export_errors_are_one_line(run_dir, tmp_path, capsys):
-    assert main(["export", str(run_dir), "--format", "stl"]) == 2
-    assert "--format: must be one of obj, ply, glb, got 'stl'" in capsys.readouterr().err
-    assert main(["export", str(run_dir), "--frames", "6"]) == 2
-    assert "--frames[0]: frame index out of range (the run has 6 frames" in capsys.readouterr().err
-    assert main(["export", str(tmp_path / "nothing")]) == 2
-    assert "RUN_DIR: no trajectory.npz" in capsys.readouterr().err
-
-
 def test_obstacle_triangles_follow_issue_3_keys():
     ext = (np.zeros(3), 2.0)
     tri = obstacle_triangles({"shape": "sphere", "radius": 0.3, "center": [1.0, 2.0, 3.0]}, 0.0, ext)
