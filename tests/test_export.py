@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 import implicit_cloth as ic
-from implicit_cloth.cli import _write_outputs, main
+from implicit_cloth.cli import main
+from implicit_cloth.files import write_run
 
 trimesh = pytest.importorskip("trimesh")
 
@@ -29,7 +30,7 @@ def _run(tmp_path, scene, name="run"):
     traj = sim.run()
     out = tmp_path / name
     out.mkdir()
-    _write_outputs(out, traj, sim.scene.data)
+    write_run(out, traj, sim.scene.data)
     return out
 
 
