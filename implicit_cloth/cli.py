@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from . import __version__
-from .errors import DivergenceError, SceneError
+from .errors import DivergenceError, InputError
 from .files import write_run
 from .integrators import INTEGRATORS
 from .report import RunReport
@@ -262,7 +262,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             scene = load_scene(scene_path)
             # Overrides go through Simulator's keywords, i.e. through scene validation.
             sim = Simulator(scene, **overrides)
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT
     finally:
@@ -292,7 +292,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         if traj is None:  # not produced by Simulator.run, but be safe
             _error(f"diverged: {_one_line(exc.reason)}", debug)
             return code
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT
     finally:
@@ -367,14 +367,14 @@ def cmd_batch(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     try:
         sweep = load_sweep(args.sweep)
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT
     out = Path(args.out) if args.out is not None else Path("out") / Path(args.sweep).stem
     if not _out_dir(out, debug):
         return EXIT_BAD_INPUT
     progress = (not args.no_progress) and sys.stderr.isatty()
-    # a SceneError here: the output directory is locked, or the scheduler cannot be reached
+    # an InputError here: the output directory is locked, or the scheduler cannot be reached
     code, result = _guarded(lambda: run_sweep(
         sweep, out, workers=args.workers, scheduler=args.scheduler, retry_failed=args.retry_failed,
         progress=progress, on_note=lambda m: print(f"{PROG}: warning: {_one_line(m)}", file=sys.stderr)),
@@ -395,7 +395,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
 def _guarded(call: Any, debug: bool, writing: str, extra: str | None = None) -> tuple[int | None, Any]:
     """Run ``call()`` the command line's way; returns ``(exit code or None when it succeeded, its result)``.
 
-    A SceneError is its one line and exit 2; an OSError is ``cannot write <writing> (...)`` and exit 1; an
+    An InputError (a SceneError, a bad flag or directory) is its one line and exit 2; an OSError is ``cannot write <writing> (...)`` and exit 1; an
     ImportError, when ``extra`` names the optional extra that provides it, says how to install it (exit 2).
     Warnings raised meanwhile are printed as one line each.
     """
@@ -408,7 +408,7 @@ def _guarded(call: Any, debug: bool, writing: str, extra: str | None = None) -> 
         if extra is None:
             raise
         return _missing_extra(exc, extra, debug), None
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT, None
     except OSError as exc:

@@ -60,11 +60,11 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
     from matplotlib.figure import Figure
 
     summary = read_summary(out)
-    keys: list[str] = list(summary.get("keys", []))
-    rows = [r for r in summary.get("cases", []) if r.get("status") in ("ok", "diverged")]
+    keys = summary.keys
+    rows = summary.finished()
     if not rows:
         raise SceneError(f"DIR: the summary has no finished case (ok or diverged) to plot, got {show(str(out))}")
-    numeric = [k for k in keys if _numeric([r.get(k) for r in rows]) and len({r.get(k) for r in rows}) > 1]
+    numeric = [k for k in keys if _numeric([r[k] for r in rows]) and len({r[k] for r in rows}) > 1]
     if x is None:
         if not numeric:
             raise SceneError(f"--x: no swept key has several numeric values to plot against (swept: "
@@ -79,7 +79,7 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
                          f"got {show(by)}")
     allowed = ("wall_s", *HEALTH_COLUMNS)
     if metrics is None:
-        metrics = [m for m in DEFAULT_METRICS if any(r.get(m) is not None for r in rows)]
+        metrics = [m for m in DEFAULT_METRICS if any(r[m] is not None for r in rows)]
     for k, m in enumerate(metrics):
         if m not in allowed:
             raise SceneError(f"--metrics[{k}]: must be one of {', '.join(allowed)}, got {show(m)}")
@@ -89,7 +89,7 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
     group_keys = ([by] if by is not None else []) + [k for k in keys if k not in (x, by)]
     groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
     for r in rows:
-        groups.setdefault(tuple(_label(r.get(k)) for k in group_keys), []).append(r)
+        groups.setdefault(tuple(_label(r[k]) for k in group_keys), []).append(r)
     colours = {v: n for n, v in enumerate(dict.fromkeys(g[0] for g in sorted(groups)))} if by else {}
 
     target = Path(plots) if plots is not None else Path(out) / "compare"
@@ -105,7 +105,7 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
         crosses: list[tuple[np.ndarray, np.ndarray]] = []
         ok_values: list[float] = []
         for g, (name, members) in enumerate(sorted(groups.items())):
-            pts = sorted((r[x], r.get(m), r["status"]) for r in members if r.get(m) is not None)
+            pts = sorted((r[x], r[m], r["status"]) for r in members if r[m] is not None)
             if not pts:
                 continue
             px = np.array([p[0] for p in pts], float)

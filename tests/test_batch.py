@@ -247,7 +247,7 @@ def test_marker_is_trusted_only_with_matching_files(tmp_path):
 
 def test_salvage_keeps_a_finished_case_and_removes_temporaries(tmp_path):
     """What the pool does with in-flight cases after their workers are gone (interrupted or killed)."""
-    from implicit_cloth.batch import _salvage, run_case, store_result
+    from implicit_cloth.batch import run_case, salvage, store_result
 
     p = make(tmp_path, 'base = "base.toml"\n[sweep]\n"simulation.dt" = [0.01, 0.02]\n')
     done_case, cut_case = load_sweep(p).cases
@@ -257,7 +257,7 @@ def test_salvage_keeps_a_finished_case_and_removes_temporaries(tmp_path):
     (out / cut_case.case_id).mkdir()                          # killed while writing
     (out / cut_case.case_id / ".report.json.x2.tmp").write_text("{")
     recorded: list[dict] = []
-    assert _salvage([done_case, cut_case], out, recorded.append) == [done_case]
+    assert salvage([done_case, cut_case], out, recorded.append) == [done_case]
     assert [r["case_id"] for r in recorded] == [done_case.case_id] and recorded[0]["status"] == "ok"
     assert sorted(p.name for p in (out / done_case.case_id).iterdir()) == [MARKER, "report.json", "trajectory.npz"]
     assert list((out / cut_case.case_id).iterdir()) == []
@@ -448,7 +448,7 @@ def test_cli_batch_output_and_locked_directory(tmp_path, capsys):
 
 def test_worker_set_up_pins_every_blas_to_one_thread():
     """NumPy's and SciPy's own OpenBLAS both (SciPy's is loaded late, by scipy.linalg)."""
-    code = ("from implicit_cloth.batch import _worker_init; _worker_init(); "
+    code = ("from implicit_cloth.batch.runner import worker_init; worker_init(); "
             "import implicit_cloth as ic; from threadpoolctl import threadpool_info; "
             "ic.Simulator({'cloth': {'resolution': [4, 4], 'mass': 0.1, 'springs': {'structural': "
             "{'stiffness': 10.0}}}}, duration=0.02).run(); "
