@@ -86,8 +86,6 @@ def scenes() -> dict[str, Callable[[], dict[str, Any]]]:
     """Name -> a thunk that runs the scene and returns its digests."""
     sys.path.insert(0, str(ROOT))
     import implicit_cloth as ic
-    from benchmarks import accuracy_cost, damping, stability
-    from benchmarks._common import hanging_stiff
 
     table: dict[str, Callable[[], dict[str, Any]]] = {}
 
@@ -115,6 +113,16 @@ def scenes() -> dict[str, Callable[[], dict[str, Any]]]:
                 sweep_base.replace(cloth={"springs": {"structural": {"stiffness": k, "damping": 0.1}}}),
                 integrator=i, dt=dt), 0.1))
 
+    table.update(_bench_scenes(ic, drape=ic.load_scene(EXAMPLES / "drape_sphere.toml")))
+    return table
+
+
+def _bench_scenes(ic: Any, drape: Any) -> dict[str, Callable[[], dict[str, Any]]]:
+    """The benchmarks' quick scenes, shortened to a few steps each."""
+    from benchmarks import accuracy_cost, damping, stability
+    from benchmarks._common import hanging_stiff
+
+    table: dict[str, Callable[[], dict[str, Any]]] = {}
     # benchmarks: scaling / step_cost / headline / stopping_rule (hanging stiff cloth, both preconditioners)
     for n in (8, 16):
         for pre in ("multigrid", "block_jacobi"):
@@ -137,7 +145,6 @@ def scenes() -> dict[str, Callable[[], dict[str, Any]]]:
     for k in (1e2, 1e4):
         table[f"bench/stability/8/k={k:g}"] = (lambda k=k: digest_run(ic.Simulator(stability.scene(8, k)), 5 / 60))
     # collision and stopping_rule: the sphere drape at small sizes
-    drape = ic.load_scene(EXAMPLES / "drape_sphere.toml")
     for n in (8, 12):
         table[f"bench/collision/drape_sphere/{n}"] = (
             lambda n=n: digest_run(ic.Simulator(drape.replace(cloth={"resolution": [n, n]})), 0.3))

@@ -16,11 +16,11 @@ All quantities are SI: metres, seconds, kilograms, newtons.
 #: The package version (the one place it is written; pyproject.toml reads it from here).
 __version__ = "0.1.0"
 
-from .errors import DivergenceError, InputError, MeshWarning, SceneError, SolverWarning  # noqa: E402
-from .integrators import INTEGRATORS  # noqa: E402
-from .materials import MATERIALS, Material  # noqa: E402
-from .scene import Scene, load_scene  # noqa: E402
-from .simulator import Simulator, Trajectory  # noqa: E402
+from .errors import DivergenceError, InputError, MeshWarning, SceneError, SolverWarning
+from .integrators import INTEGRATORS
+from .materials import MATERIALS, Material
+from .scene import Scene, load_scene
+from .simulator import Simulator, Trajectory
 
 __all__ = [
     "INTEGRATORS",

@@ -100,7 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run benchmarks/NAME.py of the source tree (an editable install or a clone). "
                     "Options after NAME go to the benchmark (e.g. --quick, --out DIR, --sizes 32 64).",
     )
-    bench.add_argument("name", metavar="NAME", help="benchmark name: the file name in benchmarks/ without .py, e.g. scaling, stability, damping")
+    bench.add_argument("name", metavar="NAME", help="benchmark name: the file name in benchmarks/ without .py, "
+                                                    "e.g. scaling, stability, damping")
     bench.add_argument("args", nargs=argparse.REMAINDER, help="options passed to the benchmark")
     bench.set_defaults(handler=cmd_bench)
 
@@ -395,8 +396,9 @@ def cmd_batch(args: argparse.Namespace) -> int:
 def _guarded(call: Any, debug: bool, writing: str, extra: str | None = None) -> tuple[int | None, Any]:
     """Run ``call()`` the command line's way; returns ``(exit code or None when it succeeded, its result)``.
 
-    An InputError (a SceneError, a bad flag or directory) is its one line and exit 2; an OSError is ``cannot write <writing> (...)`` and exit 1; an
-    ImportError, when ``extra`` names the optional extra that provides it, says how to install it (exit 2).
+    An InputError (a SceneError, a bad flag or directory) is its one line and exit 2; an OSError is
+    ``cannot write <writing> (...)`` and exit 1; an ImportError, when ``extra`` names the optional extra
+    that provides it, says how to install it (exit 2).
     Warnings raised meanwhile are printed as one line each.
     """
     caught: list[warnings.WarningMessage] = []

@@ -14,7 +14,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from .batch import HEALTH_COLUMNS, read_summary
-from .errors import SceneError, show
+from .errors import InputError, show
 from .files import atomic_write
 
 #: Figures plotted by default (those with at least one value).
@@ -28,6 +28,33 @@ def _numeric(values: Sequence[Any]) -> bool:
 
 def _label(v: Any) -> str:
     return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+def _choose(out: str | os.PathLike[str], keys: list[str], rows: list[dict[str, Any]], x: str | None,
+            by: str | None, metrics: Sequence[str] | None) -> tuple[str, Sequence[str]]:
+    """The checked ``--x``, ``--by`` and ``--metrics`` (defaults filled in); a bad one is an InputError naming it."""
+    if not rows:
+        raise InputError(f"DIR: the summary has no finished case (ok or diverged) to plot, got {show(str(out))}")
+    numeric = [k for k in keys if _numeric([r[k] for r in rows]) and len({r[k] for r in rows}) > 1]
+    if x is None:
+        if not numeric:
+            raise InputError(f"--x: no swept key has several numeric values to plot against (swept: "
+                             f"{', '.join(keys)}), got None")
+        x = "simulation.dt" if "simulation.dt" in numeric else numeric[0]
+    elif x not in keys:
+        raise InputError(f"--x: must be one of the swept keys {', '.join(keys)}, got {show(x)}")
+    elif x not in numeric:
+        raise InputError(f"--x: the values of {x} are not numbers (or all equal), got {show(x)}")
+    if by is not None and (by not in keys or by == x):
+        others = ", ".join(k for k in keys if k != x)
+        raise InputError(f"--by: must be one of the swept keys other than --x ({others}), got {show(by)}")
+    allowed = ("wall_s", *HEALTH_COLUMNS)
+    if metrics is None:
+        metrics = [m for m in DEFAULT_METRICS if any(r[m] is not None for r in rows)]
+    for k, m in enumerate(metrics):
+        if m not in allowed:
+            raise InputError(f"--metrics[{k}]: must be one of {', '.join(allowed)}, got {show(m)}")
+    return x, metrics
 
 
 def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | None = None,
@@ -62,27 +89,7 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
     summary = read_summary(out)
     keys = summary.keys
     rows = summary.finished()
-    if not rows:
-        raise SceneError(f"DIR: the summary has no finished case (ok or diverged) to plot, got {show(str(out))}")
-    numeric = [k for k in keys if _numeric([r[k] for r in rows]) and len({r[k] for r in rows}) > 1]
-    if x is None:
-        if not numeric:
-            raise SceneError(f"--x: no swept key has several numeric values to plot against (swept: "
-                             f"{', '.join(keys)}), got None")
-        x = "simulation.dt" if "simulation.dt" in numeric else numeric[0]
-    elif x not in keys:
-        raise SceneError(f"--x: must be one of the swept keys {', '.join(keys)}, got {show(x)}")
-    elif x not in numeric:
-        raise SceneError(f"--x: the values of {x} are not numbers (or all equal), got {show(x)}")
-    if by is not None and (by not in keys or by == x):
-        raise SceneError(f"--by: must be one of the swept keys other than --x ({', '.join(k for k in keys if k != x)}), "
-                         f"got {show(by)}")
-    allowed = ("wall_s", *HEALTH_COLUMNS)
-    if metrics is None:
-        metrics = [m for m in DEFAULT_METRICS if any(r[m] is not None for r in rows)]
-    for k, m in enumerate(metrics):
-        if m not in allowed:
-            raise SceneError(f"--metrics[{k}]: must be one of {', '.join(allowed)}, got {show(m)}")
+    x, metrics = _choose(out, keys, rows, x, by, metrics)
 
     # one line per combination of the keys other than x (so that a line never mixes cases);
     # with --by, lines share the colour (and the legend entry) of their --by value

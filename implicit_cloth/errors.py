@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+
 class NoValue:
     """The type of :data:`NO_VALUE`: "no value given" (``None`` is a value a key can have)."""
 

@@ -123,7 +123,7 @@ class Model:
                 where = g["paths"][m]
                 p = self.geometry.corner(v, where) if isinstance(v, str) else int(v)
                 if p >= self.n:
-                    raise SceneError(f"{where}: vertex index out of range (the cloth has {self.n} vertices), got {fmt(v)}")
+                    raise SceneError(where, f"vertex index out of range (the cloth has {self.n} vertices)", v)
                 if p in seen:
                     if g["velocity"] != vel[idx.index(p)]:
                         raise SceneError(f"{where}: vertex {p} is pinned twice with different velocities, got {fmt(v)}")

@@ -214,53 +214,62 @@ def _springs(d: Any, material: str | None) -> dict[str, dict[str, float]]:
     return out
 
 
+def _cloth_mesh(d: Mapping[str, Any], base_dir: Path | None) -> dict[str, Any]:
+    """A mesh cloth's shape keys: the file, scale and translation."""
+    for key in ("size", "resolution", "plane", "center"):
+        if key in d:
+            raise SceneError(f"cloth.{key}: not used with cloth.mesh (a mesh cloth takes scale and translation)")
+    mesh = d["mesh"]
+    if not isinstance(mesh, str) or not mesh:
+        raise fail("cloth.mesh", "must be a path to a mesh file", mesh)
+    path = Path(mesh)
+    if not path.is_absolute() and base_dir is not None:
+        path = base_dir / path
+    return {"kind": "mesh", "mesh": str(path),
+            "scale": number("cloth.scale", d.get("scale", 1.0), lo=0.0, lo_open=True),
+            "translation": vector("cloth.translation", d.get("translation", [0.0, 0.0, 0.0]), 3)}
+
+
+def _cloth_grid(d: Mapping[str, Any]) -> dict[str, Any]:
+    """A grid cloth's shape keys: size, resolution, center and plane."""
+    for key in ("scale", "translation"):
+        if key in d:
+            raise SceneError(f"cloth.{key}: only used with cloth.mesh (a grid cloth takes size and center)")
+    out: dict[str, Any] = {"kind": "grid"}
+    out["size"] = vector("cloth.size", d.get("size", [1.0, 1.0]), 2, positive=True)
+    res = d.get("resolution", [32, 32])
+    if not is_list(res) or len(res) != 2:
+        raise fail("cloth.resolution", "must be a list of 2 integers >= 2", res)
+    out["resolution"] = [integer(f"cloth.resolution[{k}]", r, lo=2) for k, r in enumerate(res)]
+    if out["resolution"][0] * out["resolution"][1] > MAX_VERTICES:
+        raise fail("cloth.resolution", f"must give at most {MAX_VERTICES} vertices (4096 x 4096), "
+                   f"nx * ny = {out['resolution'][0] * out['resolution'][1]}", res)
+    out["center"] = vector("cloth.center", d.get("center", [0.0, 0.0, 0.0]), 3)
+    out["plane"] = choice("cloth.plane", d.get("plane", "xz"), PLANES)
+    return out
+
+
+def _cloth_mass(d: Mapping[str, Any], material: str | None) -> dict[str, float]:
+    """``cloth.mass`` or ``cloth.density`` (or the material's density)."""
+    if "mass" in d and "density" in d:
+        raise SceneError("cloth.density: give either cloth.mass or cloth.density, not both")
+    if "mass" in d:
+        return {"mass": number("cloth.mass", d["mass"], lo=0.0, lo_open=True)}
+    if "density" in d:
+        return {"density": number("cloth.density", d["density"], lo=0.0, lo_open=True)}
+    if material is not None:
+        return {"density": MATERIALS[material].density}
+    raise SceneError("cloth.mass: missing (give cloth.mass in kg, cloth.density in kg/m^2, or a material)")
+
+
 def _cloth(d: Any, base_dir: Path | None) -> dict[str, Any]:
     check_keys("cloth", d, CLOTH_KEYS)
-    out: dict[str, Any] = {}
-    if "mesh" in d:
-        for key in ("size", "resolution", "plane", "center"):
-            if key in d:
-                raise SceneError(f"cloth.{key}: not used with cloth.mesh (a mesh cloth takes scale and translation)")
-        mesh = d["mesh"]
-        if not isinstance(mesh, str) or not mesh:
-            raise fail("cloth.mesh", "must be a path to a mesh file", mesh)
-        path = Path(mesh)
-        if not path.is_absolute() and base_dir is not None:
-            path = base_dir / path
-        out["kind"] = "mesh"
-        out["mesh"] = str(path)
-        out["scale"] = number("cloth.scale", d.get("scale", 1.0), lo=0.0, lo_open=True)
-        out["translation"] = vector("cloth.translation", d.get("translation", [0.0, 0.0, 0.0]), 3)
-    else:
-        for key in ("scale", "translation"):
-            if key in d:
-                raise SceneError(f"cloth.{key}: only used with cloth.mesh (a grid cloth takes size and center)")
-        out["kind"] = "grid"
-        out["size"] = vector("cloth.size", d.get("size", [1.0, 1.0]), 2, positive=True)
-        res = d.get("resolution", [32, 32])
-        if not is_list(res) or len(res) != 2:
-            raise fail("cloth.resolution", "must be a list of 2 integers >= 2", res)
-        out["resolution"] = [integer(f"cloth.resolution[{k}]", r, lo=2) for k, r in enumerate(res)]
-        if out["resolution"][0] * out["resolution"][1] > MAX_VERTICES:
-            raise fail("cloth.resolution", f"must give at most {MAX_VERTICES} vertices (4096 x 4096), "
-                        f"nx * ny = {out['resolution'][0] * out['resolution'][1]}", res)
-        out["center"] = vector("cloth.center", d.get("center", [0.0, 0.0, 0.0]), 3)
-        out["plane"] = choice("cloth.plane", d.get("plane", "xz"), PLANES)
-
+    out = _cloth_mesh(d, base_dir) if "mesh" in d else _cloth_grid(d)
     material = None
     if "material" in d:
         material = choice("cloth.material", d["material"], MATERIALS.keys())
     out["material"] = material
-    if "mass" in d and "density" in d:
-        raise SceneError("cloth.density: give either cloth.mass or cloth.density, not both")
-    if "mass" in d:
-        out["mass"] = number("cloth.mass", d["mass"], lo=0.0, lo_open=True)
-    elif "density" in d:
-        out["density"] = number("cloth.density", d["density"], lo=0.0, lo_open=True)
-    elif material is not None:
-        out["density"] = MATERIALS[material].density
-    else:
-        raise SceneError("cloth.mass: missing (give cloth.mass in kg, cloth.density in kg/m^2, or a material)")
+    out.update(_cloth_mass(d, material))
     out["velocity"] = vector("cloth.velocity", d.get("velocity", [0.0, 0.0, 0.0]), 3)
     out["pins"] = _pins(d.get("pins", []))
     if "springs" in d and d["springs"] is None:

@@ -95,7 +95,7 @@ def test_usd_points_normals_and_obstacle_transforms_at_every_frame(moving_run, t
     xf = UsdGeom.Xformable(box)
     local = np.array(UsdGeom.Mesh(box).GetPointsAttr().Get())
     np.testing.assert_allclose(np.abs(local), 0.1, atol=1e-7)                # the box's corners, local frame
-    for k, t in enumerate(times):
+    for t in times:
         m = np.array(xf.ComputeLocalToWorldTransform(float(t * 100.0)))
         world = local @ m[:3, :3] + m[3, :3]                                  # USD: row vectors
         c, R = _box_pose(moving_run, t)

@@ -6,11 +6,10 @@ import numpy as np
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
+from test_collision import TOL, _mesh_file, _passes_around, cloth_scene, depths
 
 import implicit_cloth as ic
 from implicit_cloth.collision.shapes import KeyframedMotion, Motion
-
-from test_collision import TOL, _mesh_file, _passes_around, cloth_scene, depths
 
 R0 = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()      # the shape's own orientation
 KEYS = dict(times=[0.1, 0.4, 0.5, 1.0],

@@ -58,7 +58,7 @@ def run_case(case: Case) -> dict[str, Any]:
             except DivergenceError as exc:
                 traj = exc.trajectory
                 status, reason = "diverged", " ".join(str(exc.reason).split())
-    except Exception as exc:  # noqa: BLE001 - a case that raises is recorded, the sweep goes on
+    except Exception as exc:
         status = "failed"
         reason = " ".join(f"{type(exc).__name__}: {exc}".split())
         traj = None

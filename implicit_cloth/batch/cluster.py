@@ -35,7 +35,7 @@ def run_dask(todo: Sequence[Case], out: Path, scheduler: str | None, client: Any
             case = futures[fut]
             try:
                 result = fut.result()
-            except Exception as exc:  # noqa: BLE001 - KilledWorker, a lost scheduler...: leave the case pending
+            except Exception as exc:
                 note(f"case {case.case_id} not run on the cluster ({type(exc).__name__}: "
                      f"{' '.join(str(exc).split())[:200]}); run the same command again to retry it")
                 continue

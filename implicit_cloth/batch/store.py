@@ -143,7 +143,10 @@ def _cell(v: Any) -> str:
 
 
 def write_summary(out: Path, sweep: Sweep, rows: Mapping[str, Mapping[str, Any]]) -> tuple[Path, Path]:
-    """Atomically write ``out/summary.csv`` and ``out/summary.json`` (cases in sweep order, unfinished ones ``pending``)."""
+    """Atomically write ``out/summary.csv`` and ``out/summary.json``.
+
+    Cases are in sweep order; unfinished ones are ``pending``.
+    """
     cols = summary_columns(sweep)
     table = []
     for case in sweep.cases:

@@ -185,10 +185,8 @@ def load_sweep(path: str | os.PathLike[str]) -> Sweep:
     return sweep_from_dict(data, base_dir=p.parent, path=str(p))
 
 
-def sweep_from_dict(data: Mapping[str, Any], base_dir: str | os.PathLike[str] | None = None,
-                    path: str = "<dict>") -> Sweep:
-    """Validate a sweep given as a dict with the keys of the sweep file (see :func:`load_sweep`)."""
-    check_keys("", data, ("base", "set", "sweep", "cases"))
+def _base_scene(data: Mapping[str, Any], base_dir: str | os.PathLike[str] | None) -> tuple[Path, Scene]:
+    """The sweep's ``base`` key: the path of the base scene file and the scene, validated."""
     if "base" not in data:
         raise SceneError("base: missing (a sweep file names its base scene: base = \"scene.toml\")")
     base = data["base"]
@@ -203,6 +201,21 @@ def sweep_from_dict(data: Mapping[str, Any], base_dir: str | os.PathLike[str] | 
         base_scene = load_scene(base_path)
     except SceneError as exc:
         raise fail("base", f"the base scene is invalid ({exc})", base) from None
+    return base_path, base_scene
+
+
+def _explicit_cases(value: Any) -> list[dict[str, Any]]:
+    """The ``[[cases]]`` array, each table flattened to dotted keys."""
+    if not isinstance(value, list) or not all(isinstance(c, Mapping) for c in value):
+        raise fail("cases", "must be a list of tables ([[cases]] with dotted keys)", value)
+    return [_flat(f"cases[{n}]", c) for n, c in enumerate(value)]
+
+
+def sweep_from_dict(data: Mapping[str, Any], base_dir: str | os.PathLike[str] | None = None,
+                    path: str = "<dict>") -> Sweep:
+    """Validate a sweep given as a dict with the keys of the sweep file (see :func:`load_sweep`)."""
+    check_keys("", data, ("base", "set", "sweep", "cases"))
+    base_path, base_scene = _base_scene(data, base_dir)
     base_raw = base_scene.source
     scene_dir = base_scene.base_dir
 
@@ -212,10 +225,7 @@ def sweep_from_dict(data: Mapping[str, Any], base_dir: str | os.PathLike[str] | 
         base_raw = base_scene.source
 
     sweep = _flat("sweep", data.get("sweep", {}))
-    explicit = data.get("cases", [])
-    if not isinstance(explicit, list) or not all(isinstance(c, Mapping) for c in explicit):
-        raise fail("cases", "must be a list of tables ([[cases]] with dotted keys)", explicit)
-    explicit = [_flat(f"cases[{n}]", c) for n, c in enumerate(explicit)]
+    explicit = _explicit_cases(data.get("cases", []))
     if not sweep and not explicit:
         raise SceneError("sweep: missing (a sweep file needs a [sweep] table of keys and value lists, "
                          "or [[cases]])")
@@ -250,7 +260,7 @@ def sweep_from_dict(data: Mapping[str, Any], base_dir: str | os.PathLike[str] | 
         result.cases.append(Case(cid, full, scene.source, str(scene_dir) if scene_dir is not None else None))
 
     if sweep:
-        for n, combo in enumerate(itertools.product(*sweep.values())):
+        for combo in itertools.product(*sweep.values()):
             params = dict(zip(sweep, combo))
             label = "sweep (case " + ", ".join(f"{k} = {fmt(v)}" for k, v in params.items()) + ")"
             add(params, label, lambda k: f"sweep.{k}")

@@ -393,7 +393,6 @@ class _FusedHierarchy:
 
         self.mg = mg
         systems = mg._systems()
-        L = len(mg.levels)
         fine = mg.fine
         self.voff = np.cumsum([0] + [sm.n for sm in systems]).astype(np.int64)
         f = self.precond_dtype = (np.float32 if FLOAT32_MIN_VERTICES is not None
