@@ -187,7 +187,7 @@ def _error(message: str, debug: bool = False) -> None:
     print(f"{PROG}: error: {message}", file=sys.stderr)
 
 
-def _one_line(text: str) -> str:
+def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 

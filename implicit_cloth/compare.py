@@ -109,6 +109,7 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
         FigureCanvasAgg(fig)
         ax = fig.add_subplot(1, 1, 1)
         labelled: set[str] = set()
+        label: str | None
         crosses: list[tuple[np.ndarray, np.ndarray]] = []
         ok_values: list[float] = []
         for g, (name, members) in enumerate(sorted(groups.items())):
@@ -167,5 +168,5 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
         buf = io.BytesIO()
         fig.savefig(buf, format="png")
         safe = x.replace(".", "_").replace("[", "_").replace("]", "")
-        written.append(atomic_write(target / f"{m}_vs_{safe}.png", lambda f, b=buf: f.write(b.getvalue())))
+        written.append(atomic_write(target / f"{m}_vs_{safe}.png", lambda f, b=buf: f.write(b.getvalue())))  # type: ignore[misc]
     return written

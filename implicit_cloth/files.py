@@ -19,7 +19,7 @@ import numpy as np
 from .report import RunReport
 
 
-def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], None]) -> Path:
+def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], object]) -> Path:
     """Call ``write(f)`` on a temporary file in ``path``'s directory, fsync it, and rename it to ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -48,7 +48,7 @@ def _umask() -> int:
 
 def save_npz(path: str | os.PathLike[str], **arrays: np.ndarray) -> Path:
     """Atomically write a compressed ``.npz`` with the given arrays."""
-    return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
+    return atomic_write(path, lambda f: np.savez_compressed(f, **arrays))  # type: ignore[arg-type]  # numpy stubs
 
 
 def save_json(path: str | os.PathLike[str], obj: Any) -> Path:
@@ -74,7 +74,8 @@ def _finite(obj: Any) -> Any:
 class RunLike(Protocol):
     """What :func:`write_run` needs of a run: a :class:`~implicit_cloth.simulator.Trajectory` is one."""
 
-    report: Mapping[str, Any]
+    @property
+    def report(self) -> Mapping[str, Any]: ...
 
     def save(self, path: str | os.PathLike[str]) -> Path: ...
 
@@ -97,9 +98,9 @@ def write_run(out: str | os.PathLike[str], traj: RunLike, scene: Mapping[str, An
     staged: list[Path] = []
     try:
         for target, write in zip(targets, writers):
-            fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".new", dir=out)
+            fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".new", dir=out)
             os.close(fd)
-            staged.append(Path(tmp))
+            staged.append(Path(name))
             write(staged[-1])
         for tmp, target in zip(staged, targets):
             os.replace(tmp, target)

@@ -181,8 +181,8 @@ class Model:
     def system(self) -> SystemMatrix:
         """The fixed-pattern system matrix, built (once) on first use by an implicit integrator."""
         if self._system is None:
-            pairs = [e.pairs() for e in self.effects]
-            pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
+            blocks = [e.pairs() for e in self.effects]
+            pairs = np.concatenate(blocks) if blocks else np.zeros((0, 2), dtype=np.int64)
             self._system = SystemMatrix(self.n, pairs)
             for e in self.effects:
                 e.bind(self._system)

@@ -271,7 +271,7 @@ def render_run(run_dir: str | os.PathLike[str], out: str | os.PathLike[str] | No
         target = out / "movie.mp4"
         tmp = out / f".movie.mp4.{os.getpid()}.tmp.mp4"
         try:
-            writer = FFMpegWriter(fps=fps)
+            writer = FFMpegWriter(fps=fps)  # type: ignore[arg-type]  # a float rate works; the stubs say int
             with writer.saving(r.fig, str(tmp), dpi):
                 for f in movie_frames:
                     r.draw([int(f)])

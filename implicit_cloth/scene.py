@@ -208,7 +208,7 @@ def _springs(d: Any, material: str | None) -> dict[str, dict[str, float]]:
         if "stiffness" not in given and "stiffness" not in base:
             raise SceneError(f"{path}.stiffness: missing (no material preset supplies it)")
         out[kind] = {
-            "stiffness": given.get("stiffness", base.get("stiffness")),
+            "stiffness": given["stiffness"] if "stiffness" in given else base["stiffness"],
             "damping": given.get("damping", base.get("damping", 0.0)),
         }
     return out
@@ -285,7 +285,7 @@ def _effects(d: Any) -> dict[str, Any]:
     for name in EFFECTS.names():
         if name in d:
             entry = EFFECTS[name]
-            out[name] = entry.meta["validate"](f"effects.{name}", d[name])
+            out[name] = entry.load("validate")(f"effects.{name}", d[name])
             needs = entry.meta.get("requires")
             if needs and needs[0] not in out:
                 raise SceneError(f"effects.{needs[0]}", f"missing ({needs[1]})")
@@ -319,6 +319,7 @@ def _pins_source(groups: list[Any]) -> list[Any]:
         if not paths or not all(paths) or len(paths) != len(g.get("vertices", ())):
             return [{k: v for k, v in h.items() if k != "paths"} for h in groups]
         for m, v in zip(paths, g["vertices"]):
+            assert m is not None   # checked above
             if m.group(2) is None:       # a loose entry: cloth.pins[k]
                 items[int(m.group(1))] = v
             else:                        # a table: cloth.pins[k].vertices[j]
@@ -390,7 +391,7 @@ class Scene:
         check_keys("", data, TOP_KEYS)
         if "cloth" not in data:
             raise SceneError("cloth: missing (a scene needs a [cloth] table)")
-        out = {
+        out: dict[str, Any] = {
             "simulation": _simulation(data.get("simulation", {})),
             "solver": _solver(data.get("solver", {})),
             "cloth": _cloth(data["cloth"], self.base_dir),

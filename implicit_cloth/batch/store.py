@@ -91,7 +91,7 @@ def store_result(out: Path, case: Case, result: Mapping[str, Any]) -> dict[str, 
     if "trajectory" in result:
         t = result["trajectory"]
         traj = Trajectory(t["positions"], t["times"], t["faces"], report)
-        files = write_run(case_dir, traj, scene_data)
+        files: tuple[Path, ...] = write_run(case_dir, traj, scene_data)
     else:   # failed: no trajectory; a stale one from an earlier attempt must not stand beside the report
         try:
             (case_dir / "trajectory.npz").unlink()

@@ -235,7 +235,7 @@ def sweep_from_dict(data: Mapping[str, Any], base_dir: str | os.PathLike[str] | 
         if not isinstance(values, list) or not values:
             raise fail(f"sweep.{key}", "must be a non-empty list of values", values)
         for i, v in enumerate(values):            # each value alone: the clearest message
-            _apply(base_raw, {key: v}, scene_dir, lambda k, i=i: f"sweep.{k}[{i}]")
+            _apply(base_raw, {key: v}, scene_dir, lambda k, i=i: f"sweep.{k}[{i}]")  # type: ignore[misc]
     for n, c in enumerate(explicit):
         if not c:
             raise fail(f"cases[{n}]", "must set at least one key", dict(c))
@@ -265,7 +265,7 @@ def sweep_from_dict(data: Mapping[str, Any], base_dir: str | os.PathLike[str] | 
             label = "sweep (case " + ", ".join(f"{k} = {fmt(v)}" for k, v in params.items()) + ")"
             add(params, label, lambda k: f"sweep.{k}")
     for n, c in enumerate(explicit):
-        add(dict(c), f"cases[{n}]", lambda k, n=n: f"cases[{n}].{k}")
+        add(dict(c), f"cases[{n}]", lambda k, n=n: f"cases[{n}].{k}")  # type: ignore[misc]
     return result
 
 

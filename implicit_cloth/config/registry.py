@@ -52,6 +52,10 @@ class Entry:
     factory: Callable[..., Any] | None = None
     meta: Mapping[str, Any] = field(default_factory=dict)
 
+    def load(self, attr: str) -> Any:
+        """``attr`` of the module named by ``meta["module"]``, imported now (components imported only when used)."""
+        return getattr(importlib.import_module(self.meta["module"]), attr)
+
 
 class Registry:
     """Named components of one kind, in registration order."""
@@ -116,5 +120,5 @@ INTEGRATORS = Registry("simulation.integrator", providers=("implicit_cloth.integ
 PRECONDITIONERS = Registry("solver.preconditioner", providers=("implicit_cloth.solvers",))
 #: Rigid obstacle shapes (``[[obstacles]] shape``): their keys, required keys and defaults.
 OBSTACLE_SHAPES = Registry("obstacles.shape", providers=("implicit_cloth.obstacles",))
-#: Force effects of the ``[effects]`` table, in evaluation order; ``meta["validate"]`` checks a value.
+#: Force effects of the ``[effects]`` table, in evaluation order; ``load("validate")`` checks a value.
 EFFECTS = Registry("effects", providers=("implicit_cloth.effects",))

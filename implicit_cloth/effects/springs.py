@@ -215,7 +215,8 @@ class Springs:
 
 def build(model: Any, params: dict[str, dict[str, float]]) -> Springs:
     """Springs of the declared kinds with rest lengths taken from the initial positions."""
-    pairs, k, kd, kinds = [], [], [], {}
+    pairs, k, kd = [], [], []
+    kinds: dict[str, slice] = {}
     start = 0
     for kind in ("structural", "shear", "bend"):
         if kind not in params:

@@ -29,6 +29,8 @@ indefinite (see :func:`coarse_cholesky`).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
@@ -146,7 +148,7 @@ class Multigrid:
             cur = lvl.system
         self._blocks: list[np.ndarray] = []
         self._A: list[sp.csr_array] = []
-        self._chol = None
+        self._chol: Any = None
         #: shift added to the coarsest matrix by the last setup (0: none; see coarse_cholesky)
         self.coarse_shift = 0.0
         if self.accelerator == "numba":
@@ -426,7 +428,7 @@ class _FusedHierarchy:
         self.wr = np.zeros(3 * int(self.voff[-1]))
         self.filt: Filter | None = None
         self.version = -1
-        self._touch_key = None
+        self._touch_key: bytes | None = None
 
     def _filter_arrays(self, filt: Filter) -> None:
         self.clist = np.concatenate([filt.fixed, filt.partial]).astype(np.int64)
@@ -531,7 +533,7 @@ class _FusedHierarchy:
 
         r = np.ascontiguousarray(r, dtype=float)
         out = np.empty_like(r)
-        _fused.vcycle(r, out, *self._hier(), self.wb, self.wx, self.wr)
+        _fused.vcycle(r, out, *self._hier(), self.wb, self.wx, self.wr)  # type: ignore[call-arg]  # numba Dispatcher
         return out
 
     def pcg(self, A, b, z, filt, tol=1e-3, max_iterations=1000, guess=None, mass=None, rule="estimate",
