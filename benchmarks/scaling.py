@@ -47,8 +47,8 @@ import numpy as np
 import scipy.sparse.linalg as spla
 from _common import ROOT, hanging_stiff, ic, machine, spmv_seconds, write_outputs
 
-from implicit_cloth.solvers.accel import resolve as resolve_accelerator
-from implicit_cloth.solvers.accel import set_default_accelerator
+from implicit_cloth.backend import resolve as resolve_accelerator
+from implicit_cloth.backend import set_default_accelerator
 
 H = 1 / 60
 

@@ -36,7 +36,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from ..assembly import SystemMatrix, accumulate_product
-from .accel import resolve as resolve_accelerator
+from ..backend import resolve as resolve_accelerator
 from .blocks import block_diagonal_operator, inv3
 from .pcg import Filter, SolveResult
 
@@ -138,7 +138,7 @@ class Multigrid:
         self.name = name
         self.omega = float(omega)
         self.fine = system
-        #: "numba" (fused compiled kernels) or "numpy" (reference), see :mod:`implicit_cloth.solvers.accel`
+        #: "numba" (fused compiled kernels) or "numpy" (reference), see :mod:`implicit_cloth.backend`
         self.accelerator = resolve_accelerator(accelerator)
         self.levels: list[_Level] = []
         cur = system
