@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..config.registry import PRECONDITIONERS
 from ..backend import numba_available, set_default_accelerator
+from ..config.registry import PRECONDITIONERS
 from .pcg import BlockJacobi, Filter, SolveResult, filtered_pcg
 
 # solver.preconditioner: the names scene validation accepts, the default first
