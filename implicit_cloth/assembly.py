@@ -16,7 +16,7 @@ the values:
 With the numba accelerator (:func:`implicit_cloth.backend.resolve`,
 chosen when the matrix is built) :meth:`~SystemMatrix.reset_diagonal`,
 :meth:`~SystemMatrix.add_diagonal` and :meth:`~SystemMatrix.finalize` are compiled passes
-(:mod:`implicit_cloth._assembly_fused`); numpy is the reference and fallback.
+(:mod:`implicit_cloth.kernels.assembly`); numpy is the reference and fallback.
 
 CSR rather than BSR: scipy's CSR mat-vec was measured 5-10 % faster here.
 """
@@ -49,7 +49,7 @@ class SystemMatrix:
         #: "numba" (compiled reset and finalize) or "numpy" (reference)
         self.accelerator = resolve(accelerator)
         if self.accelerator == "numba":
-            from . import _assembly_fused  # noqa: F401  (imports numba; compiles or loads from cache on first use)
+            from .kernels import assembly as _kernels  # noqa: F401  (imports numba; compiles or loads from cache on first use)
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         pairs = pairs[pairs[:, 0] != pairs[:, 1]]
         diag = np.arange(n, dtype=np.int64)
@@ -126,7 +126,7 @@ class SystemMatrix:
         """
         d = self._diagonal_values(d, "reset_diagonal")
         if self.accelerator == "numba":
-            from ._assembly_fused import reset_diagonal
+            from .kernels.assembly import reset_diagonal
 
             reset_diagonal(self.blocks, self.diag_index, d)
             return
@@ -137,7 +137,7 @@ class SystemMatrix:
         """Add ``d[i] I`` to diagonal block i (e.g. ``c_v c A_i`` of linear drag), ``d`` of shape (N,)."""
         d = self._diagonal_values(d, "add_diagonal")
         if self.accelerator == "numba":
-            from ._assembly_fused import add_diagonal
+            from .kernels.assembly import add_diagonal
 
             add_diagonal(self.blocks, self.diag_index, d)
             return
@@ -156,7 +156,7 @@ class SystemMatrix:
         Bumps :attr:`version`.
         """
         if self.accelerator == "numba":
-            from ._assembly_fused import blocks_to_csr
+            from .kernels.assembly import blocks_to_csr
 
             blocks_to_csr(self.bptr, self.blocks, self.csr.data)
         else:

@@ -1,6 +1,6 @@
 """The numerical back-end of a model: numpy (the reference) or numba (the optional compiled kernels).
 
-``"numba"`` compiles the fused kernels of :mod:`implicit_cloth.solvers._fused`
+``"numba"`` compiles the fused kernels of :mod:`implicit_cloth.kernels`
 (install the ``fast`` extra: ``pip install implicit_cloth[fast]``); ``"numpy"``
 is the reference path and the fallback; ``"auto"`` (default) picks numba when
 it is installed. The default can be set for a process with the environment

@@ -306,7 +306,7 @@ def _estimators():
 
     out = [pytest.param(pcg.current_error_estimate, id="numpy")]
     if numba_available():
-        from implicit_cloth.solvers import _fused
+        from implicit_cloth.kernels import pcg as _fused
 
         out.append(pytest.param(_fused.error_estimate, id="numba"))
     return out

@@ -87,7 +87,7 @@ class Springs:
         """Current length of each spring, m (compiled on the numba path: the adaptive step's strain and
         energy checks measure every state)."""
         if getattr(self, "accelerator", None) == "numba":
-            from ._springs_fused import spring_lengths
+            from ..kernels.springs import spring_lengths
 
             out = np.empty(len(self.i))
             spring_lengths(np.ascontiguousarray(x, dtype=float), self.i, self.j, out)
@@ -127,7 +127,7 @@ class Springs:
     def bind(self, system: Any) -> None:
         """Precompute the index maps into ``system`` and choose the implementation (numba or numpy).
 
-        The compiled path (:mod:`implicit_cloth.effects._springs_fused`) runs when
+        The compiled path (:mod:`implicit_cloth.kernels.springs`) runs when
         :func:`implicit_cloth.backend.resolve` says numba (installed, not
         disabled by ``IMPLICIT_CLOTH_ACCELERATOR=numpy``); numpy is the reference.
         The system's own choice (``system.accelerator``, made the same way when it
@@ -138,7 +138,7 @@ class Springs:
         #: "numba" (one compiled pass over the springs) or "numpy" (reference), chosen here
         self.accelerator = resolve(getattr(system, "accelerator", None))
         if self.accelerator == "numba":
-            from . import _springs_fused  # noqa: F401  (imports numba; compiles or loads from cache on first use)
+            from ..kernels import springs as _kernels  # noqa: F401  (imports numba; compiles or loads from cache on first use)
 
             # springs visited in (i, j) order: each vertex's blocks are written while they are in cache
             # (about 2x faster at 256^2 than the kinds' order; only the order of the sums changes)
@@ -169,10 +169,10 @@ class Springs:
         (i,i) and (j,j) blocks with + and the (i,j), (j,i) blocks with - (one
         sparse product giving contiguous (n_blocks, 9) values, added in one pass).
         On the numba path all of it is one compiled pass over the springs
-        (:func:`implicit_cloth.effects._springs_fused.springs_linearize`).
+        (:func:`implicit_cloth.kernels.springs.springs_linearize`).
         """
         if self.accelerator == "numba":
-            from ._springs_fused import springs_linearize
+            from ..kernels.springs import springs_linearize
 
             with_w = kw is not None and w is not None
             c = np.ascontiguousarray   # the kernel is compiled for C-contiguous float64 arrays (no copy if so)

@@ -292,7 +292,8 @@ def _concat_csr(mats: list) -> tuple:
 
 def _galerkin_entries(fine: SystemMatrix, coarse: SystemMatrix, fine_up: np.ndarray, coarse_up: np.ndarray,
                       P) -> tuple:
-    """Entry lists of :func:`._fused.galerkin` for ``coarse = P^T fine P`` (``P kron I3``), both levels in
+    """Entry lists of :func:`implicit_cloth.kernels.pcg.galerkin` for ``coarse = P^T fine P`` (``P kron I3``),
+    both levels in
     diagonal + upper-block storage (``*_up``: positions of the upper blocks in each level's block list)."""
     P = sp.csr_array(P)
     P.sort_indices()
@@ -372,13 +373,14 @@ FLOAT32_MIN_VERTICES: int | None = None
 
 
 class _FusedHierarchy:
-    """The hierarchy packed into flat arrays for the compiled kernels (:mod:`._fused`), and their drivers.
+    """The hierarchy packed into flat arrays for the compiled kernels (:mod:`implicit_cloth.kernels.pcg`), and
+    their drivers.
 
     Every level's matrix is symmetric, so the kernels store only its
     diagonal blocks and its upper blocks (``i < j``; the lower block
     ``(j, i)`` is the transpose), packed level after level, and multiply
     with one pass over each stored block that serves both ``(i, j)`` and
-    ``(j, i)`` (:func:`._fused._symmv`): half the matrix data read per pass
+    ``(j, i)`` (:func:`implicit_cloth.kernels.pcg._symmv`): half the matrix data read per pass
     and a flat loop, 2-5x faster than a CSR or block-row product on the test
     machine. The coarse levels' block values are refreshed by the same
     Galerkin maps as the numpy path and then packed; the fine level's are
@@ -391,7 +393,7 @@ class _FusedHierarchy:
     """
 
     def __init__(self, mg: Multigrid, prolongations: list) -> None:
-        from . import _fused  # noqa: F401  (imports numba now; the kernels compile, or load from cache, on first use)
+        from ..kernels import pcg as _fused  # noqa: F401  (imports numba now; the kernels compile, or load from cache, on first use)
 
         self.mg = mg
         systems = mg._systems()
@@ -441,7 +443,7 @@ class _FusedHierarchy:
         L = len(mg.levels)
         self.filt = filt
         self._filter_arrays(filt)
-        from . import _fused
+        from ..kernels import pcg as _fused
 
         flat = fine.blocks.reshape(-1)
         _fused.gather_blocks(flat, fine.diag_index, self.adg.reshape(-1))
@@ -529,7 +531,7 @@ class _FusedHierarchy:
                 C, upper, self.mg.omega)
 
     def apply(self, r: np.ndarray) -> np.ndarray:
-        from . import _fused
+        from ..kernels import pcg as _fused
 
         r = np.ascontiguousarray(r, dtype=float)
         out = np.empty_like(r)
@@ -538,7 +540,7 @@ class _FusedHierarchy:
 
     def pcg(self, A, b, z, filt, tol=1e-3, max_iterations=1000, guess=None, mass=None, rule="estimate",
             min_delay=4, delay_fraction=0.25):
-        from . import _fused
+        from ..kernels import pcg as _fused
 
         fine = self.mg.fine
         if A is not fine.csr or fine.version != self.version or filt is not self.filt:

@@ -29,7 +29,7 @@ import numpy as np
 from .blocks import block_diagonal_operator, inv3
 
 #: Factor on the extrapolated error of the current iterate, from measurements (see :func:`filtered_pcg`,
-#: Notes, and ``benchmarks/stopping_rule.py``). Keep equal to the literal in ``_fused.error_estimate``.
+#: Notes, and ``benchmarks/stopping_rule.py``). Keep equal to the literal in ``kernels.pcg.error_estimate``.
 ESTIMATE_SAFETY = 2.0
 
 
