@@ -131,7 +131,7 @@ class BlockJacobi:
 def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: float = 1e-3,
                  max_iterations: int = 1000, guess: np.ndarray | None = None, mass: np.ndarray | None = None,
                  rule: str = "estimate", min_delay: int = 4,
-                 delay_fraction: float = 0.25) -> tuple[np.ndarray, SolveResult]:
+                 delay_fraction: float = 0.25, compiled: bool | None = None) -> tuple[np.ndarray, SolveResult]:
     """Solve ``A dv = b`` with the constraints ``(I - S) dv = (I - S) z`` (BW98 §5.3).
 
     Parameters
@@ -155,6 +155,11 @@ def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: fl
         Initial guess of the free part (warm start); its constrained part is ignored.
     mass : (3N,) array, optional
         Lumped masses per coordinate, for the guaranteed bound (needs ``A >= M``).
+    compiled : bool, optional
+        Run the whole iteration compiled (``precond.fused_pcg``, the numba back-end, which takes
+        only the system the preconditioner was set up on, else a ``BackendMismatch``) or the numpy
+        loop with ``precond.apply`` (``False``: e.g. to solve another matrix with a compiled
+        V-cycle). Default: the preconditioner's back-end decides (``precond.compiled``).
     rule : {"estimate", "bound"}
         ``"estimate"``: stop when the error estimate (or the bound) is below
         ``tol``; ``"bound"``: only when the guaranteed bound is (for weak
@@ -214,12 +219,11 @@ def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: fl
     """
     if min_delay < 2:
         raise ValueError(f"min_delay: must be an integer >= 2, got {min_delay!r}")
-    fused = getattr(precond, "fused_pcg", None)
-    if fused is not None:                            # the same iteration compiled (numba), when it applies
-        out = fused(A, b, z, filt, tol=tol, max_iterations=max_iterations, guess=guess, mass=mass, rule=rule,
-                    min_delay=min_delay, delay_fraction=delay_fraction)
-        if out is not None:
-            return out
+    if compiled is None:
+        compiled = bool(getattr(precond, "compiled", False))
+    if compiled:                                     # the same iteration compiled (the numba back-end)
+        return precond.fused_pcg(A, b, z, filt, tol=tol, max_iterations=max_iterations, guess=guess, mass=mass,
+                                 rule=rule, min_delay=min_delay, delay_fraction=delay_fraction)
     zc = z - filt.apply(z.copy())                    # (I - S) z: the constrained part
     dv = zc.copy()
     r = filt.apply(b - A @ dv)
