@@ -26,11 +26,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..kernels import estimate
 from .blocks import block_diagonal_operator, inv3
 
-#: Factor on the extrapolated error of the current iterate, from measurements (see :func:`filtered_pcg`,
-#: Notes, and ``benchmarks/stopping_rule.py``). Keep equal to the literal in ``kernels.pcg.error_estimate``.
-ESTIMATE_SAFETY = 2.0
+#: Factor on the extrapolated error of the current iterate (defined with the estimate itself, in
+#: :mod:`implicit_cloth.kernels.estimate`).
+ESTIMATE_SAFETY = estimate.ESTIMATE_SAFETY
 
 
 @dataclass
@@ -299,25 +300,4 @@ def current_error_estimate(ad: np.ndarray, pw: np.ndarray, it: int, dd: float, d
         convergence (rate ``q >= 1``, stagnation) the conservative delayed estimate,
         the error of the iterate ``d`` iterations back.
     """
-    k = it
-    h = max(1, d // 2)
-    # delayed estimate (Strakos & Tichy): |e_{k-d}|^2 - |e_k|^2 with |e_j|_A^2 ~ sum_{i=j}^{k-1} ad_i
-    e2 = 0.0
-    ea_next = 0.0
-    for j in range(k - 1, k - d - 1, -1):
-        ea = ea_next + ad[j]
-        e2 += pw[j] * (ea + ea_next)
-        ea_next = ea
-    # convergence rate per iteration: the slower of the whole window's and its last h iterations'
-    q = max((ad[k - 1] / ad[k - d]) ** (1.0 / (d - 1)), (ad[k - 1] / ad[k - 1 - h]) ** (1.0 / h))
-    if not q < 1.0:
-        return float(np.sqrt(e2 / max(dd, 1e-300)))
-    recent = 0.0
-    pmax = 0.0
-    for j in range(k - h, k):
-        recent += ad[j]
-        pmax = max(pmax, pw[j])
-    qh = q ** h
-    tail = recent * qh / (1.0 - qh)                     # |e_k|_A^2 = sum_{j>=k} ad_j, geometric
-    e2_now = pmax * tail * (1.0 + q) / (1.0 - q)          # |e_k|^2 = sum_{j>=k} pw_j (|e_j|_A^2 + |e_j+1|_A^2)
-    return float(ESTIMATE_SAFETY * np.sqrt(e2_now / max(dd, 1e-300)))
+    return float(estimate.error_estimate(ad, pw, it, dd, d))
