@@ -26,7 +26,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .errors import SceneError, show
+from .errors import InputError, SceneError, show
 from .export import load_run, select_frames
 from .files import atomic_write
 
@@ -74,7 +74,6 @@ def obstacle_triangles(obstacle: Mapping[str, Any], t: float, extent: tuple[np.n
     """
     from .collision.shapes import placement
     from .config.registry import OBSTACLE_SHAPES
-    from .errors import SceneError
     from .obstacles import validate_obstacles
 
     shape = obstacle.get("shape")
@@ -226,11 +225,11 @@ def render_run(run_dir: str | os.PathLike[str], out: str | os.PathLike[str] | No
         Files written, each atomically.
     """
     if movie not in MOVIES:
-        raise SceneError(f"--movie: must be one of {', '.join(MOVIES)}, got {show(movie)}")
+        raise InputError(f"--movie: must be one of {', '.join(MOVIES)}, got {show(movie)}")
     if movie == "mp4" and shutil.which("ffmpeg") is None:
-        raise SceneError("--movie: mp4 needs ffmpeg on the PATH (use --movie gif), got 'mp4'")
+        raise InputError("--movie: mp4 needs ffmpeg on the PATH (use --movie gif), got 'mp4'")
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
-        raise SceneError(f"--fps: must be a finite number > 0, got {show(fps)}")
+        raise InputError(f"--fps: must be a finite number > 0, got {show(fps)}")
     run_dir = Path(run_dir)
     positions, times, faces = load_run(run_dir)
     n = len(positions)
