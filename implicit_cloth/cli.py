@@ -44,18 +44,18 @@ sweep's summary); each follows the same exit codes, one-line errors and
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 import traceback
 import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
 from . import __version__
-from .errors import DivergenceError, SceneError
-from .io import save_json
-from .scene import INTEGRATORS, load_scene
+from .errors import DivergenceError, InputError
+from .files import write_run
+from .integrators import INTEGRATORS
+from .report import RunReport
+from .scene import load_scene
 from .simulator import Simulator, Trajectory
 
 PROG = "implicit-cloth"
@@ -109,7 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run benchmarks/NAME.py of the source tree (an editable install or a clone). "
                     "Options after NAME go to the benchmark (e.g. --quick, --out DIR, --sizes 32 64).",
     )
-    bench.add_argument("name", metavar="NAME", help="benchmark name: the file name in benchmarks/ without .py, e.g. scaling, stability, damping")
+    bench.add_argument("name", metavar="NAME", help="benchmark name: the file name in benchmarks/ without .py, "
+                                                    "e.g. scaling, stability, damping")
     bench.add_argument("args", nargs=argparse.REMAINDER, help="options passed to the benchmark")
     bench.set_defaults(handler=cmd_bench)
 
@@ -134,12 +135,15 @@ def build_parser() -> argparse.ArgumentParser:
     batch.set_defaults(handler=cmd_batch)
 
     export = sub.add_parser(
-        "export", help="write a run's frames as meshes (obj/ply per frame, glb one file)",
-        description="Export RUN_DIR/trajectory.npz as meshes with trimesh: obj or ply, one file per frame "
-                    "(frame_0000.obj ...), or glb, one file frames.glb with a node per frame. Metres.",
+        "export", help="write a run for other tools: animated usd, pc2 point cache, glb/gltf; obj/ply per frame",
+        description="Export RUN_DIR as an animation other tools open: usd (animation.usd: time-sampled points "
+                    "and normals, obstacles' transforms; z-up; needs the usd extra), pc2 (animation.pc2 + "
+                    "rest.obj, Blender's Mesh Cache modifier), glb or gltf (animation.glb / .gltf + .bin: "
+                    "morph-target animation, obstacles' node animation; y-up), or one mesh per frame: obj "
+                    "(normals, UVs; y-up) or ply (normals; z-up). Metres; the run's vertex numbering is kept.",
     )
     export.add_argument("run_dir", metavar="RUN_DIR", help="a run's output directory (run, or a batch case)")
-    export.add_argument("--format", default="obj", help="obj | ply | glb (default obj)")
+    export.add_argument("--format", default="usd", help="usd | pc2 | glb | gltf | obj | ply (default usd)")
     export.add_argument("--out", metavar="DIR", default=None, help="output directory (default RUN_DIR/export)")
     export.add_argument("--frames", metavar="K", type=int, nargs="+", default=None,
                         help="frame indices to export (negative from the end; default all)")
@@ -192,40 +196,8 @@ def _error(message: str, debug: bool = False) -> None:
     print(f"{PROG}: error: {message}", file=sys.stderr)
 
 
-def _one_line(text: str) -> str:
+def _one_line(text: object) -> str:
     return " ".join(str(text).split())
-
-
-def _write_outputs(out: Path, traj: Trajectory, scene_data: dict[str, Any]) -> tuple[Path, Path]:
-    """Write DIR/trajectory.npz and DIR/report.json as a pair.
-
-    Both are first written completely to temporary files in DIR (each
-    atomically, see :mod:`implicit_cloth.io`), then renamed into place, so a
-    failure while writing either (a full disk) leaves the previous pair as it
-    was, never a new trajectory beside an old report, and removes the
-    temporary files.
-    """
-    report = dict(traj.report)
-    report["scene"] = scene_data
-    targets = (out / "trajectory.npz", out / "report.json")
-    writers = (traj.save, lambda p: save_json(p, report))
-    staged: list[Path] = []
-    try:
-        for target, write in zip(targets, writers):
-            fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".new", dir=out)
-            os.close(fd)
-            staged.append(Path(tmp))
-            write(staged[-1])
-        for tmp, target in zip(staged, targets):
-            os.replace(tmp, target)
-    except BaseException:
-        for tmp in staged:
-            try:
-                tmp.unlink()
-            except OSError:
-                pass
-        raise
-    return targets
 
 
 def _fmt_e(x: float) -> str:
@@ -233,53 +205,56 @@ def _fmt_e(x: float) -> str:
 
 
 def _summary(traj: Trajectory, npz: Path, js: Path) -> str:
-    r = traj.report
-    fr = r.get("frames", {})
-    steps = int(r.get("steps", 0))
-    wall = float(r.get("wall_time", 0.0))
-    ms = 1e3 * wall / steps if steps else float("nan")
+    r = RunReport.from_dict(traj.report)
+    fr = r.frames
+    ms = 1e3 * r.wall_time / r.steps if r.steps else float("nan")
     lines = [
-        f"integrator   {r.get('integrator')}",
-        f"dt           {r.get('dt'):g} s",
-        f"vertices     {r.get('n_vertices')} ({r.get('n_pinned', 0)} pinned)",
-        f"steps        {steps}",
+        f"integrator   {r.integrator}",
+        f"dt           {r.dt:g} s",
+        f"vertices     {r.n_vertices} ({r.n_pinned} pinned)",
+        f"steps        {r.steps}",
         f"frames       {len(traj)} (t = {traj.times[0]:g} .. {traj.times[-1]:g} s)",
-        f"wall time    {wall:.3f} s ({ms:.3g} ms/step)",
+        f"wall time    {r.wall_time:.3f} s ({ms:.3g} ms/step)",
     ]
-    if fr.get("total"):
+    if fr.total:
         lines.append(
-            f"final energy kinetic {_fmt_e(fr['kinetic'][-1])} J, gravity {_fmt_e(fr['gravity'][-1])} J, "
-            f"springs {_fmt_e(fr['springs'][-1])} J, total {_fmt_e(fr['total'][-1])} J")
-        lines.append(f"max strain   {max(fr['max_strain']):.4g}")
-    s = r.get("solver")
-    if s:
-        lines.append(
-            f"solver       {s['preconditioner']} PCG ({s.get('accelerator', 'numpy')}), iterations mean {s['mean_iterations']:.1f} / "
-            f"max {s['max_iterations']}, max residual {s['max_residual']:.3g} (tolerance {s['tolerance']:g}), "
-            f"unconverged steps {s['unconverged_steps']}")
-    a = r.get("adaptive")
-    if a:
-        lines.append(f"adaptive     {a['substeps']} substeps, {a['retries']} retries (halved), "
-                     f"{a.get('newton_retries', 0)} redone with Newton iterations, {a['forced']} forced, "
-                     f"smallest step {a['min_step']:g} s")
-    sl = r.get("strain_limit")
-    if sl:
-        lines.append(f"strain limit {sl['max_strain']:g}: {sl['springs_limited']} over-stretched springs in "
-                     f"{sl['steps_limited']} steps, max strain after limiting {sl['max_strain_after']:.4g}")
-    c = r.get("collision")
-    if c:
-        lines.append(
-            f"collision    {', '.join(c['obstacles'])}: {c['contacts']} contacts, {c['mean_candidates']:.0f} "
-            f"candidates/step, {c.get('mean_solves', 1):.2f} solves/step, max penetration {c['max_penetration']:.3g} m, "
-            f"fail-safe steps {c['failsafe_steps']}, obstacles' work {c['work']:.3g} J, "
-            f"{1e3 * c['mean_time_per_step']:.1f} ms/step")
-    status = r.get("status")
-    lines.append(f"status       {status}" + (f" ({r['reason']})" if status == "diverged" and r.get("reason") else ""))
-    for w in r.get("health") or []:
+            f"final energy kinetic {_fmt_e(fr.kinetic[-1])} J, gravity {_fmt_e(fr.gravity[-1])} J, "
+            f"springs {_fmt_e(fr.springs[-1])} J, total {_fmt_e(fr.total[-1])} J")
+        lines.append(f"max strain   {max(fr.max_strain):.4g}")
+    lines += _section_lines(r)
+    lines.append(f"status       {r.status}" + (f" ({r.reason})" if r.status == "diverged" and r.reason else ""))
+    for w in r.health:
         lines.append(f"warning      {w['message']}")
     lines.append(f"trajectory   {npz}")
     lines.append(f"report       {js}")
     return "\n".join(lines)
+
+
+def _section_lines(r: RunReport) -> list[str]:
+    """Summary lines of the report's optional sections: solver, adaptive, strain limit, collision."""
+    lines = []
+    s = r.solver
+    if s:
+        lines.append(
+            f"solver       {s.preconditioner} PCG ({s.accelerator}), iterations mean {s.mean_iterations:.1f} / "
+            f"max {s.max_iterations}, max residual {s.max_residual:.3g} (tolerance {s.tolerance:g}), "
+            f"unconverged steps {s.unconverged_steps}")
+    a = r.adaptive
+    if a:
+        lines.append(f"adaptive     {a.substeps} substeps, {a.retries} retries (halved), {a.newton_retries} redone "
+                     f"with Newton iterations, {a.forced} forced, smallest step {a.min_step:g} s")
+    sl = r.strain_limit
+    if sl:
+        lines.append(f"strain limit {sl.max_strain:g}: {sl.springs_limited} over-stretched springs in "
+                     f"{sl.steps_limited} steps, max strain after limiting {sl.max_strain_after:.4g}")
+    c = r.collision
+    if c:
+        lines.append(
+            f"collision    {', '.join(c.obstacles)}: {c.contacts} contacts, {c.mean_candidates:.0f} "
+            f"candidates/step, {c.mean_solves:.2f} solves/step, max penetration {c.max_penetration:.3g} m, "
+            f"fail-safe steps {c.failsafe_steps}, obstacles' work {c.work:.3g} J, "
+            f"{1e3 * c.mean_time_per_step:.1f} ms/step")
+    return lines
 
 
 # --------------------------------------------------------------------------- run
@@ -300,7 +275,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             scene = load_scene(scene_path)
             # Overrides go through Simulator's keywords, i.e. through scene validation.
             sim = Simulator(scene, **overrides)
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT
     finally:
@@ -330,7 +305,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         if traj is None:  # not produced by Simulator.run, but be safe
             _error(f"diverged: {_one_line(exc.reason)}", debug)
             return code
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT
     finally:
@@ -338,7 +313,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"{PROG}: warning: {_one_line(w.message)}", file=sys.stderr)
 
     try:
-        npz, js = _write_outputs(out, traj, scene_data)
+        npz, js = write_run(out, traj, scene_data)
     except OSError as exc:
         _error(f"cannot write results to {str(out)!r} ({exc.strerror or exc})", debug)
         return EXIT_WRITE_FAILED
@@ -409,14 +384,14 @@ def cmd_batch(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     try:
         sweep = load_sweep(args.sweep)
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT
     out = Path(args.out) if args.out is not None else Path("out") / Path(args.sweep).stem
     if not _out_dir(out, debug):
         return EXIT_BAD_INPUT
     progress = (not args.no_progress) and sys.stderr.isatty()
-    # a SceneError here: the output directory is locked, or the scheduler cannot be reached
+    # an InputError here: the output directory is locked, or the scheduler cannot be reached
     code, result = _guarded(lambda: run_sweep(
         sweep, out, workers=args.workers, scheduler=args.scheduler, retry_failed=args.retry_failed,
         progress=progress, on_note=lambda m: print(f"{PROG}: warning: {_one_line(m)}", file=sys.stderr)),
@@ -424,7 +399,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if code is not None:
         return code
     c = result.counts
-    print(f"cases        {len(sweep.cases)}: {c['ok']} ok, {c['diverged']} diverged, {c['failed']} failed, "
+    print(f"cases        {len(sweep.cases)}: {c['ok']} ok, {c['warning']} warning, {c['diverged']} diverged, "
+          f"{c['failed']} failed, "
           f"{c['pending']} pending ({result.skipped} already finished before this run)")
     print(f"summary      {result.summary[0]}")
     print(f"             {result.summary[1]}", flush=True)
@@ -437,8 +413,9 @@ def cmd_batch(args: argparse.Namespace) -> int:
 def _guarded(call: Any, debug: bool, writing: str, extra: str | None = None) -> tuple[int | None, Any]:
     """Run ``call()`` the command line's way; returns ``(exit code or None when it succeeded, its result)``.
 
-    A SceneError is its one line and exit 2; an OSError is ``cannot write <writing> (...)`` and exit 1; an
-    ImportError, when ``extra`` names the optional extra that provides it, says how to install it (exit 2).
+    An InputError (a SceneError, a bad flag or directory) is its one line and exit 2; an OSError is
+    ``cannot write <writing> (...)`` and exit 1; an ImportError, when ``extra`` names the optional extra
+    that provides it, says how to install it (exit 2).
     Warnings raised meanwhile are printed as one line each.
     """
     caught: list[warnings.WarningMessage] = []
@@ -450,7 +427,7 @@ def _guarded(call: Any, debug: bool, writing: str, extra: str | None = None) -> 
         if extra is None:
             raise
         return _missing_extra(exc, extra, debug), None
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT, None
     except OSError as exc:
@@ -469,7 +446,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.out is not None and not _out_dir(Path(args.out), debug):
         return EXIT_BAD_INPUT
     code, files = _guarded(lambda: export_run(args.run_dir, args.format, out=args.out, frames=args.frames),
-                           debug, "meshes")
+                           debug, "meshes", extra="usd")
     if code is not None:
         return code
     where = files[0].parent if files else args.out

@@ -14,9 +14,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from .batch import HEALTH_COLUMNS, read_summary
-from .errors import SceneError
-from .io import atomic_write
-from .scene import _fmt
+from .errors import InputError, show
+from .files import atomic_write
 
 #: Figures plotted by default (those with at least one value).
 DEFAULT_METRICS: tuple[str, ...] = ("energy_drift_rel", "max_strain", "mean_iterations", "wall_s")
@@ -29,6 +28,33 @@ def _numeric(values: Sequence[Any]) -> bool:
 
 def _label(v: Any) -> str:
     return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+def _choose(out: str | os.PathLike[str], keys: list[str], rows: list[dict[str, Any]], x: str | None,
+            by: str | None, metrics: Sequence[str] | None) -> tuple[str, Sequence[str]]:
+    """The checked ``--x``, ``--by`` and ``--metrics`` (defaults filled in); a bad one is an InputError naming it."""
+    if not rows:
+        raise InputError(f"DIR: the summary has no finished case (ok or diverged) to plot, got {show(str(out))}")
+    numeric = [k for k in keys if _numeric([r[k] for r in rows]) and len({r[k] for r in rows}) > 1]
+    if x is None:
+        if not numeric:
+            raise InputError(f"--x: no swept key has several numeric values to plot against (swept: "
+                             f"{', '.join(keys)}), got None")
+        x = "simulation.dt" if "simulation.dt" in numeric else numeric[0]
+    elif x not in keys:
+        raise InputError(f"--x: must be one of the swept keys {', '.join(keys)}, got {show(x)}")
+    elif x not in numeric:
+        raise InputError(f"--x: the values of {x} are not numbers (or all equal), got {show(x)}")
+    if by is not None and (by not in keys or by == x):
+        others = ", ".join(k for k in keys if k != x)
+        raise InputError(f"--by: must be one of the swept keys other than --x ({others}), got {show(by)}")
+    allowed = ("wall_s", *HEALTH_COLUMNS)
+    if metrics is None:
+        metrics = [m for m in DEFAULT_METRICS if any(r[m] is not None for r in rows)]
+    for k, m in enumerate(metrics):
+        if m not in allowed:
+            raise InputError(f"--metrics[{k}]: must be one of {', '.join(allowed)}, got {show(m)}")
+    return x, metrics
 
 
 def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | None = None,
@@ -61,36 +87,16 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
     from matplotlib.figure import Figure
 
     summary = read_summary(out)
-    keys: list[str] = list(summary.get("keys", []))
-    rows = [r for r in summary.get("cases", []) if r.get("status") in ("ok", "diverged")]
-    if not rows:
-        raise SceneError(f"DIR: the summary has no finished case (ok or diverged) to plot, got {_fmt(str(out))}")
-    numeric = [k for k in keys if _numeric([r.get(k) for r in rows]) and len({r.get(k) for r in rows}) > 1]
-    if x is None:
-        if not numeric:
-            raise SceneError(f"--x: no swept key has several numeric values to plot against (swept: "
-                             f"{', '.join(keys)}), got None")
-        x = "simulation.dt" if "simulation.dt" in numeric else numeric[0]
-    elif x not in keys:
-        raise SceneError(f"--x: must be one of the swept keys {', '.join(keys)}, got {_fmt(x)}")
-    elif x not in numeric:
-        raise SceneError(f"--x: the values of {x} are not numbers (or all equal), got {_fmt(x)}")
-    if by is not None and (by not in keys or by == x):
-        raise SceneError(f"--by: must be one of the swept keys other than --x ({', '.join(k for k in keys if k != x)}), "
-                         f"got {_fmt(by)}")
-    allowed = ("wall_s", *HEALTH_COLUMNS)
-    if metrics is None:
-        metrics = [m for m in DEFAULT_METRICS if any(r.get(m) is not None for r in rows)]
-    for k, m in enumerate(metrics):
-        if m not in allowed:
-            raise SceneError(f"--metrics[{k}]: must be one of {', '.join(allowed)}, got {_fmt(m)}")
+    keys = summary.keys
+    rows = summary.finished()
+    x, metrics = _choose(out, keys, rows, x, by, metrics)
 
     # one line per combination of the keys other than x (so that a line never mixes cases);
     # with --by, lines share the colour (and the legend entry) of their --by value
     group_keys = ([by] if by is not None else []) + [k for k in keys if k not in (x, by)]
     groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
     for r in rows:
-        groups.setdefault(tuple(_label(r.get(k)) for k in group_keys), []).append(r)
+        groups.setdefault(tuple(_label(r[k]) for k in group_keys), []).append(r)
     colours = {v: n for n, v in enumerate(dict.fromkeys(g[0] for g in sorted(groups)))} if by else {}
 
     target = Path(plots) if plots is not None else Path(out) / "compare"
@@ -103,15 +109,16 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
         FigureCanvasAgg(fig)
         ax = fig.add_subplot(1, 1, 1)
         labelled: set[str] = set()
+        label: str | None
         crosses: list[tuple[np.ndarray, np.ndarray]] = []
         ok_values: list[float] = []
         for g, (name, members) in enumerate(sorted(groups.items())):
-            pts = sorted((r[x], r.get(m), r["status"]) for r in members if r.get(m) is not None)
+            pts = sorted((r[x], r[m], r["status"]) for r in members if r[m] is not None)
             if not pts:
                 continue
             px = np.array([p[0] for p in pts], float)
             py = np.array([p[1] for p in pts], float)
-            ok = np.array([p[2] == "ok" for p in pts])
+            ok = np.array([p[2] in ("ok", "warning") for p in pts])   # finished (a warning is in the summary)
             if by is not None:
                 colour = f"C{colours[name[0]] % 10}"
                 label = f"{by.split('.')[-1]}={name[0]}"
@@ -161,5 +168,5 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
         buf = io.BytesIO()
         fig.savefig(buf, format="png")
         safe = x.replace(".", "_").replace("[", "_").replace("]", "")
-        written.append(atomic_write(target / f"{m}_vs_{safe}.png", lambda f, b=buf: f.write(b.getvalue())))
+        written.append(atomic_write(target / f"{m}_vs_{safe}.png", lambda f, b=buf: f.write(b.getvalue())))  # type: ignore[misc]
     return written

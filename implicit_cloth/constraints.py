@@ -1,4 +1,4 @@
-"""The constraints of one step, passed to :meth:`Integrator.step <implicit_cloth.integrators.Integrator.step>` as a value.
+"""The constraints of one step, passed to :meth:`Integrator.step <implicit_cloth.integrators.Integrator.step>`.
 
 Two kinds, both in Baraff & Witkin's vocabulary (BW98 §5.3: a vertex constrained in
 0, 1, 2 or 3 directions):

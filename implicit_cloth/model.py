@@ -19,9 +19,10 @@ import numpy as np
 
 from . import cloth as _cloth
 from .assembly import SystemMatrix
+from .backend import Backend, get_backend
+from .config.validate import fmt
 from .effects import Effect, build_effects
 from .errors import SceneError
-from .scene import _fmt
 
 
 @dataclass
@@ -60,6 +61,9 @@ class Model:
 
     def __init__(self, scene: Any) -> None:
         self.scene = scene
+        #: the numerical back-end (numpy or numba), resolved once here: the system matrix, the springs bound
+        #: to it and the preconditioner dispatch through it
+        self.backend: Backend = get_backend()
         c = scene.data["cloth"]
         kinds = tuple(c["springs"])
         if c["kind"] == "grid":
@@ -123,10 +127,10 @@ class Model:
                 where = g["paths"][m]
                 p = self.geometry.corner(v, where) if isinstance(v, str) else int(v)
                 if p >= self.n:
-                    raise SceneError(f"{where}: vertex index out of range (the cloth has {self.n} vertices), got {_fmt(v)}")
+                    raise SceneError(where, f"vertex index out of range (the cloth has {self.n} vertices)", v)
                 if p in seen:
                     if g["velocity"] != vel[idx.index(p)]:
-                        raise SceneError(f"{where}: vertex {p} is pinned twice with different velocities, got {_fmt(v)}")
+                        raise SceneError(f"{where}: vertex {p} is pinned twice with different velocities, got {fmt(v)}")
                     continue
                 seen[p] = where
                 idx.append(p)
@@ -170,7 +174,7 @@ class Model:
 
     def potential_energy(self, x: np.ndarray) -> dict[str, float]:
         """Potential energy of each conservative effect, J."""
-        return {e.name: e.potential(x) for e in self.effects if e.name in ("gravity", "springs")}
+        return {e.name: e.potential(x) for e in self.effects if e.conservative}
 
     def kinetic_energy(self, v: np.ndarray) -> float:
         """``sum_i m_i |v_i|^2 / 2``, J."""
@@ -181,9 +185,9 @@ class Model:
     def system(self) -> SystemMatrix:
         """The fixed-pattern system matrix, built (once) on first use by an implicit integrator."""
         if self._system is None:
-            pairs = [e.pairs() for e in self.effects]
-            pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
-            self._system = SystemMatrix(self.n, pairs)
+            blocks = [e.pairs() for e in self.effects]
+            pairs = np.concatenate(blocks) if blocks else np.zeros((0, 2), dtype=np.int64)
+            self._system = SystemMatrix(self.n, pairs, self.backend)
             for e in self.effects:
                 e.bind(self._system)
         return self._system

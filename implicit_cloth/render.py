@@ -26,10 +26,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .errors import SceneError
+from .errors import InputError, SceneError, show
 from .export import load_run, select_frames
-from .io import atomic_write
-from .scene import _fmt
+from .files import atomic_write
 
 CLOTH_COLOR = np.array([0.27, 0.51, 0.71])
 OBSTACLE_COLOR = np.array([0.75, 0.72, 0.68])
@@ -57,7 +56,7 @@ def _local_triangles(spec: Mapping[str, Any]) -> np.ndarray:
     elif shape == "capsule":
         m = trimesh.creation.capsule(height=float(spec["height"]), radius=float(spec["radius"]), count=[16, 16])
     else:   # mesh
-        from .scene import load_obstacle_mesh
+        from .geometry import load_obstacle_mesh
 
         verts, faces = load_obstacle_mesh(spec["path"])
         return np.asarray(verts, float)[faces] * float(spec["scale"])
@@ -74,8 +73,8 @@ def obstacle_triangles(obstacle: Mapping[str, Any], t: float, extent: tuple[np.n
     for the size and place of a plane's square.
     """
     from .collision.shapes import placement
-    from .errors import SceneError
-    from .scene import OBSTACLE_SHAPES, _obstacles
+    from .config.registry import OBSTACLE_SHAPES
+    from .obstacles import validate_obstacles
 
     shape = obstacle.get("shape")
     if shape not in OBSTACLE_SHAPES:
@@ -83,7 +82,7 @@ def obstacle_triangles(obstacle: Mapping[str, Any], t: float, extent: tuple[np.n
                       RenderWarning, stacklevel=3)
         return None
     try:
-        spec = _obstacles([obstacle])[0]
+        spec = validate_obstacles([obstacle])[0]
         motion = placement(spec)
         if shape == "plane":
             c, half = extent
@@ -226,11 +225,11 @@ def render_run(run_dir: str | os.PathLike[str], out: str | os.PathLike[str] | No
         Files written, each atomically.
     """
     if movie not in MOVIES:
-        raise SceneError(f"--movie: must be one of {', '.join(MOVIES)}, got {_fmt(movie)}")
+        raise InputError(f"--movie: must be one of {', '.join(MOVIES)}, got {show(movie)}")
     if movie == "mp4" and shutil.which("ffmpeg") is None:
-        raise SceneError("--movie: mp4 needs ffmpeg on the PATH (use --movie gif), got 'mp4'")
+        raise InputError("--movie: mp4 needs ffmpeg on the PATH (use --movie gif), got 'mp4'")
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
-        raise SceneError(f"--fps: must be a finite number > 0, got {_fmt(fps)}")
+        raise InputError(f"--fps: must be a finite number > 0, got {show(fps)}")
     run_dir = Path(run_dir)
     positions, times, faces = load_run(run_dir)
     n = len(positions)
@@ -271,7 +270,7 @@ def render_run(run_dir: str | os.PathLike[str], out: str | os.PathLike[str] | No
         target = out / "movie.mp4"
         tmp = out / f".movie.mp4.{os.getpid()}.tmp.mp4"
         try:
-            writer = FFMpegWriter(fps=fps)
+            writer = FFMpegWriter(fps=fps)  # type: ignore[arg-type]  # a float rate works; the stubs say int
             with writer.saving(r.fig, str(tmp), dpi):
                 for f in movie_frames:
                     r.draw([int(f)])

@@ -17,9 +17,11 @@ from .adaptive import AdaptiveStats, StepController
 from .constraints import Constraints
 from .errors import DivergenceError, SolverWarning
 from .integrators import make_integrator
-from .io import save_npz
+from .files import save_npz
 from .model import Model, State
-from .scene import Scene, _number, _run_length, load_scene
+from .config.validate import number as _number
+from .scene import Scene, load_scene
+from .scene import check_run_length as _run_length
 
 
 class Trajectory:

@@ -15,8 +15,7 @@ import numpy as np
 import pytest
 
 from implicit_cloth import SceneError
-from implicit_cloth.batch import (HEALTH_COLUMNS, MARKER, finished_row, load_sweep, run_sweep,
-                                  summary_columns)
+from implicit_cloth.batch import HEALTH_COLUMNS, MARKER, finished_row, load_sweep, run_sweep, summary_columns
 from implicit_cloth.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -173,7 +172,7 @@ def test_diverged_and_failed_cases_are_recorded_and_the_sweep_goes_on(tmp_path):
     sweep = load_sweep(p)
     out = tmp_path / "out"
     res = run_sweep(sweep, out, workers=1)
-    assert res.counts == {"ok": 1, "diverged": 1, "failed": 1, "pending": 0}
+    assert res.counts == {"ok": 1, "warning": 0, "diverged": 1, "failed": 1, "pending": 0}
     ok, div, failed = (res.rows[c.case_id] for c in sweep.cases)
     assert ok["status"] == "ok" and ok["reason"] == ""
     assert div["status"] == "diverged" and ("energy grew" in div["reason"] or "non-finite" in div["reason"])
@@ -207,14 +206,14 @@ def test_summary_columns_and_values(tmp_path, capsys):
     out = tmp_path / "out"
     run_sweep(sweep, out, workers=1, progress=True)
     bar = capsys.readouterr().err.split("\r")[-1]          # the progress bar's last state
-    assert "2/2" in bar and "ok=2, diverged=0, failed=0" in bar
+    assert "2/2" in bar and "ok=2, warning=0, diverged=0, failed=0" in bar
     cols, rows = read_csv(out / "summary.csv")
     assert cols == ["case_id", "simulation.integrator", "simulation.dt", "status", "reason", "wall_s",
                     "steps", "energy_drift", "energy_drift_rel", "max_strain", "mean_iterations",
-                    "max_iterations", "unconverged_steps", "max_penetration"]
+                    "max_iterations", "unconverged_steps", "max_penetration", "health"]
     assert cols == summary_columns(sweep) and tuple(cols[-len(HEALTH_COLUMNS):]) == HEALTH_COLUMNS
     js = json.loads((out / "summary.json").read_text())
-    assert js["counts"] == {"ok": 2, "diverged": 0, "failed": 0, "pending": 0}
+    assert js["counts"] == {"ok": 2, "warning": 0, "diverged": 0, "failed": 0, "pending": 0}
     for row, case in zip(js["cases"], sweep.cases):
         report = json.loads((out / case.case_id / "report.json").read_text())
         fr = report["frames"]
@@ -247,7 +246,7 @@ def test_marker_is_trusted_only_with_matching_files(tmp_path):
 
 def test_salvage_keeps_a_finished_case_and_removes_temporaries(tmp_path):
     """What the pool does with in-flight cases after their workers are gone (interrupted or killed)."""
-    from implicit_cloth.batch import _salvage, run_case, store_result
+    from implicit_cloth.batch import run_case, salvage, store_result
 
     p = make(tmp_path, 'base = "base.toml"\n[sweep]\n"simulation.dt" = [0.01, 0.02]\n')
     done_case, cut_case = load_sweep(p).cases
@@ -257,7 +256,7 @@ def test_salvage_keeps_a_finished_case_and_removes_temporaries(tmp_path):
     (out / cut_case.case_id).mkdir()                          # killed while writing
     (out / cut_case.case_id / ".report.json.x2.tmp").write_text("{")
     recorded: list[dict] = []
-    assert _salvage([done_case, cut_case], out, recorded.append) == [done_case]
+    assert salvage([done_case, cut_case], out, recorded.append) == [done_case]
     assert [r["case_id"] for r in recorded] == [done_case.case_id] and recorded[0]["status"] == "ok"
     assert sorted(p.name for p in (out / done_case.case_id).iterdir()) == [MARKER, "report.json", "trajectory.npz"]
     assert list((out / cut_case.case_id).iterdir()) == []
@@ -328,7 +327,8 @@ def test_interrupted_sweep_resumes_to_completion(tmp_path):
     done = _count_markers(out)
     _, rows = read_csv(out / "summary.csv")
     assert 1 <= done < total and len(rows) == total
-    assert sum(r["status"] == "ok" for r in rows) == done and sum(r["status"] == "pending" for r in rows) == total - done
+    assert sum(r["status"] == "ok" for r in rows) == done
+    assert sum(r["status"] == "pending" for r in rows) == total - done
 
     # 2. SIGKILL of the whole run (parent and workers) part way
     proc = _batch_process(p, out)
@@ -348,7 +348,7 @@ def test_interrupted_sweep_resumes_to_completion(tmp_path):
     stdout, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err
     assert "worker process died" in err
-    assert f"8: 8 ok, 0 diverged, 0 failed, 0 pending ({len(kept)} already finished" in stdout
+    assert f"8: 8 ok, 0 warning, 0 diverged, 0 failed, 0 pending ({len(kept)} already finished" in stdout
     # nothing finished was lost or redone; every case exactly once; every file loads; no temporary file left
     assert {name: (out / name / MARKER).stat().st_mtime_ns for name in kept} == kept
     _, rows = read_csv(out / "summary.csv")
@@ -403,7 +403,7 @@ def test_local_and_dask_cluster_give_identical_results(tmp_path):
             again = run_sweep(sweep, tmp_path / "cluster", client=client)
     assert again.skipped == 8
     remote = again
-    assert local.counts == remote.counts == {"ok": 8, "diverged": 0, "failed": 0, "pending": 0}
+    assert local.counts == remote.counts == {"ok": 8, "warning": 0, "diverged": 0, "failed": 0, "pending": 0}
     for case in sweep.cases:
         a, b = dict(local.rows[case.case_id]), dict(remote.rows[case.case_id])
         a.pop("wall_s"), b.pop("wall_s")
@@ -435,7 +435,7 @@ def test_cli_batch_output_and_locked_directory(tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["batch", str(p), "--out", str(out), "--workers", "1", "--no-progress"]) == 0
     text = capsys.readouterr().out
-    assert "2: 2 ok, 0 diverged, 0 failed, 0 pending (0 already finished" in text
+    assert "2: 2 ok, 0 warning, 0 diverged, 0 failed, 0 pending (0 already finished" in text
     assert main(["batch", str(p), "--out", str(out), "--workers", "0"]) == 2
     assert "--workers: must be an integer >= 1, got 0" in capsys.readouterr().err
     import fcntl
@@ -448,7 +448,7 @@ def test_cli_batch_output_and_locked_directory(tmp_path, capsys):
 
 def test_worker_set_up_pins_every_blas_to_one_thread():
     """NumPy's and SciPy's own OpenBLAS both (SciPy's is loaded late, by scipy.linalg)."""
-    code = ("from implicit_cloth.batch import _worker_init; _worker_init(); "
+    code = ("from implicit_cloth.batch.runner import worker_init; worker_init(); "
             "import implicit_cloth as ic; from threadpoolctl import threadpool_info; "
             "ic.Simulator({'cloth': {'resolution': [4, 4], 'mass': 0.1, 'springs': {'structural': "
             "{'stiffness': 10.0}}}}, duration=0.02).run(); "
@@ -456,5 +456,5 @@ def test_worker_set_up_pins_every_blas_to_one_thread():
             "if i['user_api'] == 'blas'))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env=dict(os.environ, PYTHONPATH=str(ROOT))).stdout
-    libs = eval(out)   # noqa: S307 - our own printed list
+    libs = eval(out)
     assert libs and all(n == 1 for _, n in libs), libs

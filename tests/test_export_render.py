@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import implicit_cloth as ic
-from implicit_cloth.cli import _write_outputs, main
+from implicit_cloth.cli import main
+from implicit_cloth.files import write_run
 
 trimesh = pytest.importorskip("trimesh")
 PIL_Image = pytest.importorskip("PIL.Image")
@@ -27,44 +28,8 @@ def run_dir(tmp_path, hanging_scene):
     traj = sim.run()
     out = tmp_path / "run"
     out.mkdir()
-    _write_outputs(out, traj, sim.scene.data)
+    write_run(out, traj, sim.scene.data)
     return out
-
-
-def test_export_obj_ply_glb_open_in_trimesh(run_dir, capsys):
-    with np.load(run_dir / "trajectory.npz") as z:
-        pos, faces = z["positions"], z["faces"]
-    assert main(["export", str(run_dir), "--format", "obj"]) == 0
-    objs = sorted((run_dir / "export").glob("frame_*.obj"))
-    assert [p.name for p in objs] == [f"frame_{k:04d}.obj" for k in range(len(pos))]
-    for k, p in enumerate(objs):
-        m = trimesh.load(p, process=False)
-        np.testing.assert_allclose(m.vertices, pos[k], atol=1e-7)
-        np.testing.assert_array_equal(m.faces, faces)
-    assert main(["export", str(run_dir), "--format", "ply", "--frames", "0", "-1", "--out",
-                 str(run_dir / "ply")]) == 0
-    plys = sorted((run_dir / "ply").glob("*.ply"))
-    assert [p.name for p in plys] == ["frame_0000.ply", f"frame_{len(pos) - 1:04d}.ply"]
-    np.testing.assert_allclose(trimesh.load(plys[1], process=False).vertices, pos[-1], atol=1e-6)
-    assert main(["export", str(run_dir), "--format", "glb"]) == 0
-    scene = trimesh.load(run_dir / "export" / "frames.glb")
-    assert len(scene.geometry) == len(pos)
-    g = scene.geometry["frame_0003"]
-    np.testing.assert_allclose(g.vertices, pos[3], atol=1e-6)     # glb stores float32
-    with np.load(run_dir / "trajectory.npz") as z:
-        assert g.metadata["time"] == pytest.approx(z["times"][3])
-    assert [p.name for p in (run_dir / "export").glob("*.glb")] == ["frames.glb"]   # glb: one file
-    assert "wrote 1 glb file to" in capsys.readouterr().out
-    assert not [p for p in (run_dir / "export").iterdir() if p.name.startswith(".")]
-
-
-def test_export_errors_are_one_line(run_dir, tmp_path, capsys):
-    assert main(["export", str(run_dir), "--format", "stl"]) == 2
-    assert "--format: must be one of obj, ply, glb, got 'stl'" in capsys.readouterr().err
-    assert main(["export", str(run_dir), "--frames", "6"]) == 2
-    assert "--frames[0]: frame index out of range (the run has 6 frames" in capsys.readouterr().err
-    assert main(["export", str(tmp_path / "nothing")]) == 2
-    assert "RUN_DIR: no trajectory.npz" in capsys.readouterr().err
 
 
 def test_obstacle_triangles_follow_issue_3_keys():
@@ -172,11 +137,11 @@ def test_core_import_stays_light():
 def test_render_places_obstacles_where_the_collider_has_them(motion):
     """The drawn box's corners are the collision code's box corners at the same time (same motion code)."""
     from implicit_cloth.collision.shapes import build
+    from implicit_cloth.obstacles import validate_obstacles
     from implicit_cloth.render import obstacle_triangles
-    from implicit_cloth.scene import _obstacles
 
     table = {"shape": "box", "size": [0.2, 0.4, 0.6], **motion}
-    shape, mo = build(_obstacles([table])[0])
+    shape, mo = build(validate_obstacles([table])[0])
     for t in (0.0, 0.3, 0.7):
         drawn = np.unique(obstacle_triangles(table, t, (np.zeros(3), 1.0)).reshape(-1, 3).round(12), axis=0)
         corners = mo.to_world(shape.feature_points, t)

@@ -17,8 +17,6 @@ from . import ccd
 from .response import SETTLE_FRACTION, spread
 from .shapes import Shape, local_aabb
 
-#: Golden-section steps for the nearest point of an edge (0.618^30 ~ 5e-7 of the edge).
-GOLDEN_STEPS = 30
 #: Points along cloth edges are kept this fraction of the thickness from a surface.
 EDGE_FRACTION = 0.5
 #: Bisection steps in time for where an edge first entered a shape.
@@ -29,34 +27,6 @@ def edge_minimum(shape: Shape, a0: np.ndarray, a1: np.ndarray) -> tuple[np.ndarr
     """Parameter ``a`` (K,) and value (K,) m of the smallest signed distance along segments a0 -> a1
     (:meth:`Shape.segment_minimum <implicit_cloth.collision.shapes.Shape.segment_minimum>`)."""
     return shape.segment_minimum(a0, a1)
-
-
-def golden_minimum(shape: Shape, a0: np.ndarray, a1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Parameter ``a`` (K,) and value (K,) m of the smallest signed distance along segments a0 -> a1.
-
-    The signed distance of a convex shape is convex, so along a segment it has one
-    minimum, found by golden-section search (:data:`GOLDEN_STEPS` steps).
-    """
-    d = a1 - a0
-    lo, hi = np.zeros(len(a0)), np.ones(len(a0))
-    g = 0.5 * (np.sqrt(5.0) - 1.0)
-    m1, m2 = hi - g * (hi - lo), lo + g * (hi - lo)
-    f1 = shape.distance(a0 + m1[:, None] * d)
-    f2 = shape.distance(a0 + m2[:, None] * d)
-    for _ in range(GOLDEN_STEPS):
-        left = f1 < f2                       # the minimum lies in [lo, m2], else in [m1, hi]
-        hi = np.where(left, m2, hi)
-        lo = np.where(left, lo, m1)
-        n1 = np.where(left, hi - g * (hi - lo), m2)
-        n2 = np.where(left, m1, lo + g * (hi - lo))
-        fn = shape.distance(a0 + np.where(left, n1, n2)[:, None] * d)
-        f1, f2 = np.where(left, fn, f2), np.where(left, f1, fn)
-        m1, m2 = n1, n2
-    a = 0.5 * (lo + hi)
-    ends = np.column_stack([shape.distance(a0), shape.distance(a1), shape.distance(a0 + a[:, None] * d)])
-    best = np.argmin(ends, axis=1)
-    a = np.choose(best, [np.zeros(len(a0)), np.ones(len(a0)), a])
-    return a, ends[np.arange(len(a0)), best]
 
 
 class FeatureStages:

@@ -6,11 +6,19 @@ from typing import Any
 
 import numpy as np
 
+from ..config.validate import vector
+
+
+def validate(path: str, value: Any) -> list[float]:
+    """``effects.gravity``: a 3-vector, m/s^2."""
+    return vector(path, value, 3)
+
 
 class Gravity:
     """Uniform gravitational acceleration ``g`` (m/s^2) acting on every vertex mass."""
 
     name = "gravity"
+    conservative = True
 
     def __init__(self, masses: np.ndarray, g) -> None:
         self.g = np.asarray(g, dtype=float)
@@ -32,5 +40,6 @@ class Gravity:
         f += self._mg  # constant force: no Jacobian
 
 
-def build(model: Any, g) -> Gravity:
+def build(model: Any, g: Any, effects: Any = None) -> Gravity:
+    """The ``effects.gravity`` term (``effects``: the whole [effects] table, unused)."""
     return Gravity(model.masses, g)

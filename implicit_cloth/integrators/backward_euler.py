@@ -14,13 +14,13 @@ oscillator the amplitude shrinks by ``1 / sqrt(1 + w^2 h^2)`` per step.
 from __future__ import annotations
 
 from ..model import State
-from .base import ImplicitIntegrator, StepInfo, _Scheme
+from .base import ImplicitIntegrator, StepInfo, Scheme
 
 
 class BackwardEuler(ImplicitIntegrator):
     name = "backward_euler"
 
-    def _scheme(self, state: State, h: float, info: StepInfo) -> _Scheme:
+    def _scheme(self, state: State, h: float, info: StepInfo) -> Scheme:
         x, v, t = state.x, state.v, state.t
         A, f0, kv = self._linearize(x, v, t, h * h, h, v, info)
-        return _Scheme(h * h, h, h * (f0 + h * kv), x, h, v)
+        return Scheme(h * h, h, h * (f0 + h * kv), x, h, v)

@@ -98,7 +98,7 @@ class Integrator:
 
 
 @dataclass
-class _Scheme:
+class Scheme:
     """One implicit step's linear system and position update, before the constraints.
 
     ``A dv = b`` with ``A = M - c_v dF/dv - c_x dF/dx`` linearised at ``x``, ``v``; the end
@@ -120,7 +120,7 @@ class _Linearization:
 
     state: State
     h: float
-    scheme: _Scheme
+    scheme: Scheme
     version: int                           # SystemMatrix.version when it was assembled
 
 
@@ -150,7 +150,7 @@ class ImplicitIntegrator(Integrator):
     def reset(self) -> None:
         self._lin = None
 
-    def _scheme(self, state: State, h: float, info: StepInfo) -> _Scheme:  # pragma: no cover - abstract
+    def _scheme(self, state: State, h: float, info: StepInfo) -> Scheme:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def _linearize(self, x, v, t, c_x, c_v, w, info: StepInfo):
@@ -159,7 +159,7 @@ class ImplicitIntegrator(Integrator):
         info.t_assembly += time.perf_counter() - t0
         return out
 
-    def _system(self, state: State, h: float, c: Constraints, info: StepInfo) -> tuple[_Scheme, Any, np.ndarray]:
+    def _system(self, state: State, h: float, c: Constraints, info: StepInfo) -> tuple[Scheme, Any, np.ndarray]:
         """The scheme, the finalized matrix and the right-hand side (with the contacts' kinetic friction)."""
         sysm = self.model.system
         lin = self._lin
@@ -234,7 +234,7 @@ class ImplicitIntegrator(Integrator):
     def _potential(self, x: np.ndarray) -> float:
         return float(sum(self.model.potential_energy(x).values()))
 
-    def _newton(self, state: State, h: float, c: Constraints, scheme: _Scheme, v: np.ndarray, filt: Filter,
+    def _newton(self, state: State, h: float, c: Constraints, scheme: Scheme, v: np.ndarray, filt: Filter,
                 iterations: int, info: StepInfo) -> tuple[State, StepInfo]:
         """Continue the step by Newton iterations with a line search on the incremental potential.
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from ..model import State
 from .backward_euler import BackwardEuler
-from .base import StepInfo, _Scheme
+from .base import StepInfo, Scheme
 
 
 class BDF2(BackwardEuler):
@@ -49,7 +49,7 @@ class BDF2(BackwardEuler):
                 break
         return self._prev
 
-    def _scheme(self, state: State, h: float, info: StepInfo) -> _Scheme:
+    def _scheme(self, state: State, h: float, info: StepInfo) -> Scheme:
         hist = self._history(state)
         if hist is None or hist[1] is not state or hist[2] != h:
             return super()._scheme(state, h, info)
@@ -59,7 +59,7 @@ class BDF2(BackwardEuler):
         w = dx_hist + (2.0 / 3.0) * h * v
         A, f0, kw = self._linearize(x, v, t, (4.0 / 9.0) * h * h, (2.0 / 3.0) * h, w, info)
         b = self.model.masses[:, None] * ((v - old.v) / 3.0) + (2.0 / 3.0) * h * (f0 + kw)
-        return _Scheme((4.0 / 9.0) * h * h, (2.0 / 3.0) * h, b, x + dx_hist, (2.0 / 3.0) * h,
+        return Scheme((4.0 / 9.0) * h * h, (2.0 / 3.0) * h, b, x + dx_hist, (2.0 / 3.0) * h,
                        (4.0 / 3.0) * v - (1.0 / 3.0) * old.v)
 
     def step(self, state: State, h: float, constraints=None, guess=None, newton=None, start=None):

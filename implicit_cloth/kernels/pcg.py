@@ -40,6 +40,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from . import estimate
+
 
 @njit(cache=True, inline="always")
 def _filt3(Sc, c, x0, x1, x2):
@@ -310,7 +312,8 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
     vertices, diagonal blocks ``dg[voff[l]:voff[l+1]]`` and upper blocks
     ``uv[uoff[l]:uoff[l+1]]`` at local block indices ``uI``, ``uJ`` (see :func:`_symmv`);
     the finest level's are unfiltered, the filter being applied on the fly
-    (:func:`_fsymmv`), and with ``use6`` read from their six-number copy ``u6``. Its vectors live at ``3 voff[l]`` in the work arrays ``wb``
+    (:func:`_fsymmv`), and with ``use6`` read from their six-number copy ``u6``. Its vectors live at
+    ``3 voff[l]`` in the work arrays ``wb``
     (right-hand sides), ``wx`` (iterates) and ``wr`` (products, residuals, then smoothed
     iterates). The prolongation l -> l+1 has rows ``pptr[poff[l]:poff[l] + n_l + 1]``
     (local), entries ``pnnz[l]:pnnz[l+1]`` of ``pidx``/``pval``; its transpose likewise in
@@ -357,7 +360,8 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
 
     ``adg``, ``auI``, ``auJ``, ``auv``: the fine matrix (unfiltered, float64, symmetric storage of
-    :func:`_symmv`) that CG multiplies by (its upper blocks from ``au6`` with ``use6``); the V-cycle's packed hierarchy (:func:`vcycle`) may hold its
+    :func:`_symmv`) that CG multiplies by (its upper blocks from ``au6`` with ``use6``); the V-cycle's packed
+    hierarchy (:func:`vcycle`) may hold its
     own (float32) copy of it as level 0.
 
     Returns ``(dv, iterations, residual, converged, error)``.
@@ -485,29 +489,8 @@ def galerkin(sd, su, od, ou, d_ptr, d_dst, d_w, u_ptr, u_dst, u_w):
                         od[t + 3 * a + b] += w * (su[o + 3 * a + b] + su[o + 3 * b + a])
 
 
-@njit(cache=True)
-def error_estimate(ad, pw, it, dd, d):
-    """:func:`implicit_cloth.solvers.pcg.current_error_estimate`, compiled: the same loops in the same order."""
-    k = it
-    h = max(1, d // 2)
-    e2 = 0.0
-    ea_next = 0.0
-    for j in range(k - 1, k - d - 1, -1):
-        ea = ea_next + ad[j]
-        e2 += pw[j] * (ea + ea_next)
-        ea_next = ea
-    q = max((ad[k - 1] / ad[k - d]) ** (1.0 / (d - 1)), (ad[k - 1] / ad[k - 1 - h]) ** (1.0 / h))
-    if not q < 1.0:
-        return np.sqrt(e2 / max(dd, 1e-300))
-    recent = 0.0
-    pmax = 0.0
-    for j in range(k - h, k):
-        recent += ad[j]
-        pmax = max(pmax, pw[j])
-    qh = q ** h
-    tail = recent * qh / (1.0 - qh)
-    e2_now = pmax * tail * (1.0 + q) / (1.0 - q)
-    return 2.0 * np.sqrt(e2_now / max(dd, 1e-300))             # pcg.ESTIMATE_SAFETY (a test checks they agree)
+#: :func:`implicit_cloth.solvers.pcg.current_error_estimate`, compiled: the one definition in :mod:`.estimate`
+error_estimate = njit(cache=True)(estimate.error_estimate)
 
 
 @njit(cache=True)
