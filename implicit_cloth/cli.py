@@ -15,8 +15,9 @@ Exit codes
 0
     The run finished (``status`` ``"ok"``).
 1
-    The results could not be written (an operating-system error after the run,
-    e.g. a full disk). The two files are written together: a failure leaves
+    The results could not be produced or written: out of memory (one line
+    ``implicit-cloth: error: out of memory ...``) or an operating-system error
+    after the run (e.g. a full disk). The two files are written together: a failure leaves
     a previous ``trajectory.npz`` and ``report.json`` as they were and no
     temporary file behind.
 2
@@ -28,6 +29,10 @@ Exit codes
     The run diverged: the frames kept before it are written to
     ``trajectory.npz``, ``report.json`` has ``status`` ``"diverged"`` and the
     reason, and the reason is printed on stderr.
+130
+    Interrupted (Ctrl-C, SIGINT): ``implicit-cloth: interrupted`` on stderr,
+    nothing written (a previous pair of outputs stays as it was). The
+    interrupt is taken between steps, also on the compiled (numba) path.
 
 Other subcommands: ``bench`` (a benchmark of benchmarks/), ``batch`` (a
 parameter sweep, see :mod:`implicit_cloth.batch`), ``export`` (meshes of a
@@ -39,9 +44,7 @@ sweep's summary); each follows the same exit codes, one-line errors and
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 import traceback
 import warnings
 from pathlib import Path
@@ -49,7 +52,6 @@ from typing import Any, Sequence
 
 from . import __version__
 from .errors import DivergenceError, SceneError
-from .io import save_json
 from .scene import INTEGRATORS, load_scene
 from .simulator import Simulator, Trajectory
 
@@ -59,6 +61,7 @@ EXIT_OK = 0
 EXIT_WRITE_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
+EXIT_INTERRUPTED = 130
 
 
 # --------------------------------------------------------------------------- parser
@@ -200,35 +203,18 @@ def _one_line(text: str) -> str:
 
 
 def _write_outputs(out: Path, traj: Trajectory, scene_data: dict[str, Any]) -> tuple[Path, Path]:
-    """Write DIR/trajectory.npz and DIR/report.json as a pair.
+    """Write DIR/trajectory.npz and DIR/report.json as one pair (:func:`implicit_cloth.outputs.write_pair`).
 
-    Both are first written completely to temporary files in DIR (each
-    atomically, see :mod:`implicit_cloth.io`), then renamed into place, so a
-    failure while writing either (a full disk) leaves the previous pair as it
-    was, never a new trajectory beside an old report, and removes the
-    temporary files.
+    A failure while writing either (a full disk) leaves the previous pair as it was and removes the temporary
+    files; a kill between the two renames leaves a pair that :func:`~implicit_cloth.outputs.check_pair`
+    refuses (the report names its trajectory's run id); temporaries of killed writers are removed by the next
+    write.
     """
+    from .outputs import write_pair
+
     report = dict(traj.report)
     report["scene"] = scene_data
-    targets = (out / "trajectory.npz", out / "report.json")
-    writers = (traj.save, lambda p: save_json(p, report))
-    staged: list[Path] = []
-    try:
-        for target, write in zip(targets, writers):
-            fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".new", dir=out)
-            os.close(fd)
-            staged.append(Path(tmp))
-            write(staged[-1])
-        for tmp, target in zip(staged, targets):
-            os.replace(tmp, target)
-    except BaseException:
-        for tmp in staged:
-            try:
-                tmp.unlink()
-            except OSError:
-                pass
-        raise
-    return targets
+    return write_pair(out, {"positions": traj.positions, "times": traj.times, "faces": traj.faces}, report)
 
 
 def _fmt_e(x: float) -> str:
@@ -523,7 +509,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.handler(args))
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except SystemError as exc:      # a second Ctrl-C inside compiled code (see implicit_cloth.interrupt)
+        if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
+            print(f"{PROG}: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        raise
+    except MemoryError:
+        _error(f"out of memory while running {args.command} (a smaller cloth.resolution, fewer kept frames "
+               "or a shorter run needs less)", bool(getattr(args, "debug", False)))
+        return EXIT_WRITE_FAILED
 
 
 if __name__ == "__main__":

@@ -294,6 +294,9 @@ def read_run(run_dir: str | os.PathLike[str]) -> Run:
                          ) from None
     if positions.ndim != 3 or positions.shape[0] == 0 or len(times) != len(positions):
         raise SceneError(f"RUN_DIR: {p} holds no frames (positions {positions.shape}), got {_fmt(str(run_dir))}")
+    from .outputs import check_pair
+
+    check_pair(run_dir)
     scene = _report_scene(run_dir)
     fps = run_fps(times, scene)
     if not math.isfinite(fps) or fps <= 0:

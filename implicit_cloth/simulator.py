@@ -16,6 +16,7 @@ from . import diagnostics
 from .adaptive import AdaptiveStats, StepController
 from .errors import DivergenceError, SolverWarning
 from .integrators import make_integrator
+from .interrupt import deferred_interrupt
 from .io import save_npz
 from .model import Model, State
 from .scene import Scene, _number, _run_length, load_scene
@@ -328,7 +329,9 @@ class Simulator:
         stack = contextlib.ExitStack()
         try:
             stack.enter_context(_blas_threads(self.blas_threads))
+            stop = stack.enter_context(deferred_interrupt())   # Ctrl-C raised between steps, not in numba code
             for s in range(1, n_steps + 1):
+                stop.check()
                 ts = time.perf_counter()
                 try:
                     info = self._advance()
