@@ -19,7 +19,7 @@ import os
 import re
 import secrets
 from pathlib import Path
-from typing import Any, Mapping
+from typing import IO, Any, Mapping
 
 import numpy as np
 
@@ -74,6 +74,11 @@ def _fsync_dir(path: Path) -> None:
             os.close(fd)
 
 
+def _create(path: Path) -> IO[bytes]:
+    """A new file (never an existing one) opened for writing."""
+    return os.fdopen(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), "wb")
+
+
 def write_pair(out: str | os.PathLike[str], arrays: Mapping[str, np.ndarray], report: Mapping[str, Any]
                ) -> tuple[Path, Path]:
     """Write ``out/trajectory.npz`` (``arrays`` plus ``run_id``) and ``out/report.json`` (``report`` plus its
@@ -86,14 +91,14 @@ def write_pair(out: str | os.PathLike[str], arrays: Mapping[str, np.ndarray], re
     targets = (out / TRAJECTORY, out / REPORT)
     staged = [out / f".{t.name}.{os.getpid()}.{secrets.token_hex(4)}.new" for t in targets]
     try:
-        with open(staged[0], "wb") as f:
+        with _create(staged[0]) as f:
             np.savez_compressed(f, run_id=np.array(run_id), **arrays)
             f.flush()
             os.fsync(f.fileno())
         full = dict(report)
         full["outputs"] = {"run_id": run_id, "trajectory": TRAJECTORY, "trajectory_sha256": _sha256(staged[0])}
         text = json.dumps(_finite(full), indent=2, allow_nan=False)
-        with open(staged[1], "wb") as f:
+        with _create(staged[1]) as f:
             f.write(text.encode("utf-8"))
             f.flush()
             os.fsync(f.fileno())
