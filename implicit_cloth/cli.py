@@ -44,11 +44,12 @@ sweep's summary); each follows the same exit codes, one-line errors and
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import traceback
 import warnings
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NoReturn, Sequence
 
 from . import __version__
 from .errors import DivergenceError, SceneError
@@ -65,15 +66,24 @@ EXIT_INTERRUPTED = 130
 
 
 # --------------------------------------------------------------------------- parser
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``implicit-cloth: error: --dt: invalid float value: 'abc' (see ...)``
+    instead of the usage text and the error (exit code 2 either way)."""
+
+    def error(self, message: str) -> NoReturn:
+        message = re.sub(r"^argument ([^:]+): ", r"\1: ", " ".join(message.split()))
+        self.exit(EXIT_BAD_INPUT, f"{PROG}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (one subparser per subcommand)."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog=PROG,
         description="Mass-spring cloth simulation with Baraff-Witkin implicit integration.",
         epilog="Exit codes: 0 ok, 1 results could not be written, 2 bad input, 3 diverged.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
 
     run = sub.add_parser(
         "run", help="simulate a scene and write trajectory.npz and report.json",

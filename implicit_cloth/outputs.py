@@ -92,7 +92,7 @@ def write_pair(out: str | os.PathLike[str], arrays: Mapping[str, np.ndarray], re
     staged = [out / f".{t.name}.{os.getpid()}.{secrets.token_hex(4)}.new" for t in targets]
     try:
         with _create(staged[0]) as f:
-            np.savez_compressed(f, run_id=np.array(run_id), **arrays)
+            np.savez_compressed(f, run_id=np.array(run_id), **dict(arrays))  # type: ignore[arg-type]
             f.flush()
             os.fsync(f.fileno())
         full = dict(report)
