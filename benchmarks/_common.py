@@ -14,8 +14,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-import implicit_cloth as ic  # noqa: E402
-from implicit_cloth.io import atomic_write, save_json  # noqa: E402
+import implicit_cloth as ic
+from implicit_cloth.files import atomic_write, save_json
 
 
 def machine() -> dict:

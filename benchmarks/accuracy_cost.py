@@ -98,9 +98,9 @@ from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
-
 import stability
 from _common import FIXED_STEPS, ROOT, ic, machine, progress, save_png, write_outputs
+
 from implicit_cloth import diagnostics
 
 EXPLICIT = ("forward_euler", "symplectic_euler", "verlet", "rk4")

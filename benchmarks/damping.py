@@ -73,8 +73,8 @@ from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
-
 from _common import FIXED_STEPS, ROOT, STYLE, ic, machine, progress, save_png, write_outputs
+
 from implicit_cloth import diagnostics
 
 EXPLICIT = ("forward_euler", "symplectic_euler", "verlet", "rk4")

@@ -74,7 +74,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-
 import stability
 from _common import FIXED_STEPS, ROOT, hanging_stiff, ic, machine, progress, save_png, write_outputs
 
@@ -112,8 +111,8 @@ def step_costs(n: int, k: float, warmup: int, steps: int, repeats: int = 3) -> d
             sim.positions, sim.velocities = x0, v0
             sim.state.t = t0
             box: dict = {}
-            cpu, wall = _timed(lambda: box.setdefault("traj", sim.run(duration=steps * H,
-                                                                      frame_rate=1 / (steps * H))))
+            cpu, wall = _timed(lambda box=box, sim=sim: box.setdefault("traj", sim.run(
+                duration=steps * H, frame_rate=1 / (steps * H))))
             rep = box["traj"].report
             tm = rep["timing"]
             rows.append({"cpu": cpu / steps, "wall": wall / steps, "assembly": tm["t_assembly"] / steps,
@@ -160,10 +159,10 @@ def one_second(base: dict, integrator: str, dt: float, repeats: int, seed: int, 
             stability.perturbed(sim, seed)
             try:
                 if full:
-                    c, w = _timed(lambda: sim.run(duration=1.0, frame_rate=30))
+                    c, w = _timed(lambda sim=sim: sim.run(duration=1.0, frame_rate=30))
                 else:
                     sim.step(1)   # first-step work (Verlet's first force, BDF2's start) not timed
-                    c, w = _timed(lambda: sim.step(steps))
+                    c, w = _timed(lambda sim=sim: sim.step(steps))
             except ic.DivergenceError:
                 status = "diverged"
                 break
@@ -374,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
                     raise SystemExit(f"headline: {a.stability} has no result for {name} at k = {k:g}")
                 r = {key: got[key] for key in ("status", "dt_max", "dt_unstable")}
             else:
-                test = lambda dt, name=name: stability.trial(base, name, dt, a.duration, 20, a.seed)  # noqa: E731
+                test = lambda dt, name=name, base=base: stability.trial(base, name, dt, a.duration, 20, a.seed)  # noqa: E731
                 r = stability.search(test, stability.guess_for(name, row["mode"], a.cap), a.floor, a.cap, a.rtol)
             if r["dt_max"] is not None:
                 r["one_second"] = one_second(base, name, r["dt_max"], a.repeats, a.seed, a.full_max_steps)

@@ -45,10 +45,10 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse.linalg as spla
-
 from _common import ROOT, hanging_stiff, ic, machine, spmv_seconds, write_outputs
 
-from implicit_cloth.solvers.accel import resolve as resolve_accelerator, set_default_accelerator
+from implicit_cloth.backend import resolve as resolve_accelerator
+from implicit_cloth.backend import set_default_accelerator
 
 H = 1 / 60
 
@@ -262,7 +262,7 @@ def plot(res: dict, path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    from implicit_cloth.io import atomic_write
+    from implicit_cloth.files import atomic_write
 
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=120))
     plt.close(fig)

@@ -96,8 +96,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-
 from _common import FIXED_STEPS, ROOT, STYLE, hanging_stiff, ic, machine, progress, save_png, write_outputs
+
 from implicit_cloth import diagnostics
 
 EXPLICIT = ("forward_euler", "symplectic_euler", "verlet", "rk4")
@@ -418,7 +418,7 @@ def main(argv: list[str] | None = None) -> int:
               f"zeta_top={mode['zeta']:.3g}", flush=True)
         for name in a.integrators:
             bar.set_postfix_str(f"k={k:.0e} {name}")
-            test = lambda dt, name=name: trial(base, name, dt, a.duration, a.min_steps, a.seed)  # noqa: E731
+            test = lambda dt, name=name, base=base: trial(base, name, dt, a.duration, a.min_steps, a.seed)  # noqa: E731
             r = search(test, guess_for(name, mode, a.cap), a.floor, a.cap, a.rtol)
             r["s_per_step"] = None
             if r["dt_max"] is not None:

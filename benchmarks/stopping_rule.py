@@ -53,7 +53,6 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-
 from _common import ROOT, hanging_stiff, ic, machine, progress, save_png, write_outputs
 
 from implicit_cloth.integrators import base

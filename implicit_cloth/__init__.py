@@ -13,17 +13,20 @@ Public API::
 All quantities are SI: metres, seconds, kilograms, newtons.
 """
 
-from .errors import DivergenceError, MeshWarning, SceneError, SolverWarning
-from .materials import MATERIALS, Material
-from .scene import INTEGRATORS, Scene, load_scene
-from .simulator import Simulator, Trajectory
-
+#: The package version (the one place it is written; pyproject.toml reads it from here).
 __version__ = "0.1.0"
+
+from .errors import DivergenceError, InputError, MeshWarning, SceneError, SolverWarning
+from .integrators import INTEGRATORS
+from .materials import MATERIALS, Material
+from .scene import Scene, load_scene
+from .simulator import Simulator, Trajectory
 
 __all__ = [
     "INTEGRATORS",
     "MATERIALS",
     "DivergenceError",
+    "InputError",
     "Material",
     "MeshWarning",
     "Scene",

@@ -13,7 +13,7 @@ the values:
    CSR matrix whose ``indptr``/``indices`` never change (no COO->CSR
    conversion, no Python loop over springs).
 
-With the numba accelerator (:func:`implicit_cloth.solvers.accel.resolve`,
+With the numba accelerator (:func:`implicit_cloth.backend.resolve`,
 chosen when the matrix is built) :meth:`~SystemMatrix.reset_diagonal`,
 :meth:`~SystemMatrix.add_diagonal` and :meth:`~SystemMatrix.finalize` are compiled passes
 (:mod:`implicit_cloth._assembly_fused`); numpy is the reference and fallback.
@@ -39,11 +39,11 @@ class SystemMatrix:
         blocks are created; duplicates and self-pairs are merged.
     accelerator : {"auto", "numba", "numpy"} or None
         Implementation of :meth:`reset_diagonal` and :meth:`finalize` (``None``: the
-        process default, see :mod:`implicit_cloth.solvers.accel`).
+        process default, see :mod:`implicit_cloth.backend`).
     """
 
     def __init__(self, n: int, pairs: np.ndarray, accelerator: str | None = None) -> None:
-        from .solvers.accel import resolve
+        from .backend import resolve
 
         self.n = int(n)
         #: "numba" (compiled reset and finalize) or "numpy" (reference)

@@ -52,8 +52,11 @@ from pathlib import Path
 from typing import Any, NoReturn, Sequence
 
 from . import __version__
-from .errors import DivergenceError, SceneError
-from .scene import INTEGRATORS, load_scene
+from .errors import DivergenceError, InputError
+from .files import write_run
+from .integrators import INTEGRATORS
+from .report import RunReport
+from .scene import load_scene
 from .simulator import Simulator, Trajectory
 
 PROG = "implicit-cloth"
@@ -113,7 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run benchmarks/NAME.py of the source tree (an editable install or a clone). "
                     "Options after NAME go to the benchmark (e.g. --quick, --out DIR, --sizes 32 64).",
     )
-    bench.add_argument("name", metavar="NAME", help="benchmark name: the file name in benchmarks/ without .py, e.g. scaling, stability, damping")
+    bench.add_argument("name", metavar="NAME", help="benchmark name: the file name in benchmarks/ without .py, "
+                                                    "e.g. scaling, stability, damping")
     bench.add_argument("args", nargs=argparse.REMAINDER, help="options passed to the benchmark")
     bench.set_defaults(handler=cmd_bench)
 
@@ -208,23 +212,8 @@ def _error(message: str, debug: bool = False) -> None:
     print(f"{PROG}: error: {message}", file=sys.stderr)
 
 
-def _one_line(text: str) -> str:
+def _one_line(text: object) -> str:
     return " ".join(str(text).split())
-
-
-def _write_outputs(out: Path, traj: Trajectory, scene_data: dict[str, Any]) -> tuple[Path, Path]:
-    """Write DIR/trajectory.npz and DIR/report.json as one pair (:func:`implicit_cloth.outputs.write_pair`).
-
-    A failure while writing either (a full disk) leaves the previous pair as it was and removes the temporary
-    files; a kill between the two renames leaves a pair that :func:`~implicit_cloth.outputs.check_pair`
-    refuses (the report names its trajectory's run id); temporaries of killed writers are removed by the next
-    write.
-    """
-    from .outputs import write_pair
-
-    report = dict(traj.report)
-    report["scene"] = scene_data
-    return write_pair(out, {"positions": traj.positions, "times": traj.times, "faces": traj.faces}, report)
 
 
 def _fmt_e(x: float) -> str:
@@ -232,49 +221,53 @@ def _fmt_e(x: float) -> str:
 
 
 def _summary(traj: Trajectory, npz: Path, js: Path) -> str:
-    r = traj.report
-    fr = r.get("frames", {})
-    steps = int(r.get("steps", 0))
-    wall = float(r.get("wall_time", 0.0))
-    ms = 1e3 * wall / steps if steps else float("nan")
+    r = RunReport.from_dict(traj.report)
+    fr = r.frames
+    ms = 1e3 * r.wall_time / r.steps if r.steps else float("nan")
     lines = [
-        f"integrator   {r.get('integrator')}",
-        f"dt           {r.get('dt'):g} s",
-        f"vertices     {r.get('n_vertices')} ({r.get('n_pinned', 0)} pinned)",
-        f"steps        {steps}",
+        f"integrator   {r.integrator}",
+        f"dt           {r.dt:g} s",
+        f"vertices     {r.n_vertices} ({r.n_pinned} pinned)",
+        f"steps        {r.steps}",
         f"frames       {len(traj)} (t = {traj.times[0]:g} .. {traj.times[-1]:g} s)",
-        f"wall time    {wall:.3f} s ({ms:.3g} ms/step)",
+        f"wall time    {r.wall_time:.3f} s ({ms:.3g} ms/step)",
     ]
-    if fr.get("total"):
+    if fr.total:
         lines.append(
-            f"final energy kinetic {_fmt_e(fr['kinetic'][-1])} J, gravity {_fmt_e(fr['gravity'][-1])} J, "
-            f"springs {_fmt_e(fr['springs'][-1])} J, total {_fmt_e(fr['total'][-1])} J")
-        lines.append(f"max strain   {max(fr['max_strain']):.4g}")
-    s = r.get("solver")
-    if s:
-        lines.append(
-            f"solver       {s['preconditioner']} PCG ({s.get('accelerator', 'numpy')}), iterations mean {s['mean_iterations']:.1f} / "
-            f"max {s['max_iterations']}, max residual {s['max_residual']:.3g} (tolerance {s['tolerance']:g}), "
-            f"unconverged steps {s['unconverged_steps']}")
-    a = r.get("adaptive")
-    if a:
-        lines.append(f"adaptive     {a['substeps']} substeps, {a['retries']} retries, {a['forced']} forced, "
-                     f"smallest step {a['min_step']:g} s")
-    sl = r.get("strain_limit")
-    if sl:
-        lines.append(f"strain limit {sl['max_strain']:g}: {sl['springs_limited']} over-stretched springs in "
-                     f"{sl['steps_limited']} steps, max strain after limiting {sl['max_strain_after']:.4g}")
-    c = r.get("collision")
-    if c:
-        lines.append(
-            f"collision    {', '.join(c['obstacles'])}: {c['contacts']} contacts, {c['mean_candidates']:.0f} "
-            f"candidates/step, max penetration {c['max_penetration']:.3g} m, fail-safe steps {c['failsafe_steps']}, "
-            f"{1e3 * c['mean_time_per_step']:.1f} ms/step")
-    status = r.get("status")
-    lines.append(f"status       {status}" + (f" ({r['reason']})" if r.get("reason") else ""))
+            f"final energy kinetic {_fmt_e(fr.kinetic[-1])} J, gravity {_fmt_e(fr.gravity[-1])} J, "
+            f"springs {_fmt_e(fr.springs[-1])} J, total {_fmt_e(fr.total[-1])} J")
+        lines.append(f"max strain   {max(fr.max_strain):.4g}")
+    lines += _section_lines(r)
+    lines.append(f"status       {r.status}" + (f" ({r.reason})" if r.reason else ""))
     lines.append(f"trajectory   {npz}")
     lines.append(f"report       {js}")
     return "\n".join(lines)
+
+
+def _section_lines(r: RunReport) -> list[str]:
+    """Summary lines of the report's optional sections: solver, adaptive, strain limit, collision."""
+    lines = []
+    s = r.solver
+    if s:
+        lines.append(
+            f"solver       {s.preconditioner} PCG ({s.accelerator}), iterations mean {s.mean_iterations:.1f} / "
+            f"max {s.max_iterations}, max residual {s.max_residual:.3g} (tolerance {s.tolerance:g}), "
+            f"unconverged steps {s.unconverged_steps}")
+    a = r.adaptive
+    if a:
+        lines.append(f"adaptive     {a.substeps} substeps, {a.retries} retries, {a.forced} forced, "
+                     f"smallest step {a.min_step:g} s")
+    sl = r.strain_limit
+    if sl:
+        lines.append(f"strain limit {sl.max_strain:g}: {sl.springs_limited} over-stretched springs in "
+                     f"{sl.steps_limited} steps, max strain after limiting {sl.max_strain_after:.4g}")
+    c = r.collision
+    if c:
+        lines.append(
+            f"collision    {', '.join(c.obstacles)}: {c.contacts} contacts, {c.mean_candidates:.0f} "
+            f"candidates/step, max penetration {c.max_penetration:.3g} m, fail-safe steps {c.failsafe_steps}, "
+            f"{1e3 * c.mean_time_per_step:.1f} ms/step")
+    return lines
 
 
 # --------------------------------------------------------------------------- run
@@ -295,7 +288,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             scene = load_scene(scene_path)
             # Overrides go through Simulator's keywords, i.e. through scene validation.
             sim = Simulator(scene, **overrides)
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT
     finally:
@@ -325,7 +318,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         if traj is None:  # not produced by Simulator.run, but be safe
             _error(f"diverged: {_one_line(exc.reason)}", debug)
             return code
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT
     finally:
@@ -333,7 +326,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"{PROG}: warning: {_one_line(w.message)}", file=sys.stderr)
 
     try:
-        npz, js = _write_outputs(out, traj, scene_data)
+        npz, js = write_run(out, traj, scene_data)
     except OSError as exc:
         _error(f"cannot write results to {str(out)!r} ({exc.strerror or exc})", debug)
         return EXIT_WRITE_FAILED
@@ -400,14 +393,14 @@ def cmd_batch(args: argparse.Namespace) -> int:
         return EXIT_BAD_INPUT
     try:
         sweep = load_sweep(args.sweep)
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT
     out = Path(args.out) if args.out is not None else Path("out") / Path(args.sweep).stem
     if not _out_dir(out, debug):
         return EXIT_BAD_INPUT
     progress = (not args.no_progress) and sys.stderr.isatty()
-    # a SceneError here: the output directory is locked, or the scheduler cannot be reached
+    # an InputError here: the output directory is locked, or the scheduler cannot be reached
     code, result = _guarded(lambda: run_sweep(
         sweep, out, workers=args.workers, scheduler=args.scheduler, retry_failed=args.retry_failed,
         progress=progress, on_note=lambda m: print(f"{PROG}: warning: {_one_line(m)}", file=sys.stderr)),
@@ -428,8 +421,9 @@ def cmd_batch(args: argparse.Namespace) -> int:
 def _guarded(call: Any, debug: bool, writing: str, extra: str | None = None) -> tuple[int | None, Any]:
     """Run ``call()`` the command line's way; returns ``(exit code or None when it succeeded, its result)``.
 
-    A SceneError is its one line and exit 2; an OSError is ``cannot write <writing> (...)`` and exit 1; an
-    ImportError, when ``extra`` names the optional extra that provides it, says how to install it (exit 2).
+    An InputError (a SceneError, a bad flag or directory) is its one line and exit 2; an OSError is
+    ``cannot write <writing> (...)`` and exit 1; an ImportError, when ``extra`` names the optional extra
+    that provides it, says how to install it (exit 2).
     Warnings raised meanwhile are printed as one line each.
     """
     caught: list[warnings.WarningMessage] = []
@@ -441,7 +435,7 @@ def _guarded(call: Any, debug: bool, writing: str, extra: str | None = None) -> 
         if extra is None:
             raise
         return _missing_extra(exc, extra, debug), None
-    except SceneError as exc:
+    except InputError as exc:
         _error(_one_line(exc), debug)
         return EXIT_BAD_INPUT, None
     except OSError as exc:

@@ -236,9 +236,9 @@ def from_mesh(path: str, scale: float = 1.0, translation=(0.0, 0.0, 0.0),
     faces = faces.astype(np.int64)
     out_of_range = (faces < 0) | (faces >= len(verts))
     if out_of_range.any():
-        f = int(np.flatnonzero(out_of_range.any(axis=1))[0])
-        raise SceneError(f"cloth.mesh: face {f} = {faces[f].tolist()} refers to vertex "
-                         f"{int(faces[f][out_of_range[f]][0])}, which is not in the file (it has {len(verts)} "
+        bf = int(np.flatnonzero(out_of_range.any(axis=1))[0])
+        raise SceneError(f"cloth.mesh: face {bf} = {faces[bf].tolist()} refers to vertex "
+                         f"{int(faces[bf][out_of_range[bf]][0])}, which is not in the file (it has {len(verts)} "
                          f"vertices, 0 to {len(verts) - 1}), got {path!r}")
     bad = ~np.isfinite(verts).all(axis=1)
     if bad.any():

@@ -14,9 +14,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from .batch import HEALTH_COLUMNS, read_summary
-from .errors import SceneError
-from .export._files import write_bytes
-from .scene import _fmt
+from .errors import InputError, show
+from .export.staging import write_bytes
 
 #: Figures plotted by default (those with at least one value).
 DEFAULT_METRICS: tuple[str, ...] = ("energy_drift_rel", "max_strain", "mean_iterations", "wall_s")
@@ -42,30 +41,31 @@ def _sort_key(values: tuple[Any, ...]) -> tuple[tuple[int, Any], ...]:
                  (2, "") if v is None else (1, str(v)) for v in values)
 
 
-def _check_args(keys: list[str], rows: list[dict[str, Any]], x: str | None, by: str | None,
-                metrics: Sequence[str] | None) -> tuple[str, list[str]]:
-    """The x key and the metrics to plot, checked against the sweep (one-line SceneErrors naming the option)."""
-    numeric = [k for k in keys if _numeric([r.get(k) for r in rows]) and len({r.get(k) for r in rows}) > 1]
+def _choose(out: str | os.PathLike[str], keys: list[str], rows: list[dict[str, Any]], x: str | None,
+            by: str | None, metrics: Sequence[str] | None) -> tuple[str, Sequence[str]]:
+    """The checked ``--x``, ``--by`` and ``--metrics`` (defaults filled in); a bad one is an InputError naming it."""
+    if not rows:
+        raise InputError(f"DIR: the summary has no finished case (ok or diverged) to plot, got {show(str(out))}")
+    numeric = [k for k in keys if _numeric([r[k] for r in rows]) and len({r[k] for r in rows}) > 1]
     if x is None:
         if not numeric:
-            raise SceneError(f"--x: no swept key has several numeric values to plot against (swept: "
+            raise InputError(f"--x: no swept key has several numeric values to plot against (swept: "
                              f"{', '.join(keys)}), got None")
         x = "simulation.dt" if "simulation.dt" in numeric else numeric[0]
     elif x not in keys:
-        raise SceneError(f"--x: must be one of the swept keys {', '.join(keys)}, got {_fmt(x)}")
+        raise InputError(f"--x: must be one of the swept keys {', '.join(keys)}, got {show(x)}")
     elif x not in numeric:
-        raise SceneError(f"--x: the values of {x} are not numbers (or all equal), got {_fmt(x)}")
+        raise InputError(f"--x: the values of {x} are not numbers (or all equal), got {show(x)}")
     if by is not None and (by not in keys or by == x):
-        raise SceneError(f"--by: must be one of the swept keys other than --x ({', '.join(k for k in keys if k != x)}), "
-                         f"got {_fmt(by)}")
+        others = ", ".join(k for k in keys if k != x)
+        raise InputError(f"--by: must be one of the swept keys other than --x ({others}), got {show(by)}")
     allowed = ("wall_s", *HEALTH_COLUMNS)
     if metrics is None:
-        metrics = [m for m in DEFAULT_METRICS if any(r.get(m) is not None for r in rows)]
+        metrics = [m for m in DEFAULT_METRICS if any(r[m] is not None for r in rows)]
     for k, m in enumerate(metrics):
         if m not in allowed:
-            raise SceneError(f"--metrics[{k}]: must be one of {', '.join(allowed)}, got {_fmt(m)}")
-
-    return x, list(metrics)
+            raise InputError(f"--metrics[{k}]: must be one of {', '.join(allowed)}, got {show(m)}")
+    return x, metrics
 
 
 def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | None = None,
@@ -101,18 +101,16 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
     from matplotlib.figure import Figure
 
     summary = read_summary(out)
-    keys: list[str] = list(summary.get("keys", []))
-    rows = [r for r in summary.get("cases", []) if r.get("status") in ("ok", "diverged")]
-    if not rows:
-        raise SceneError(f"DIR: the summary has no finished case (ok or diverged) to plot, got {_fmt(str(out))}")
-    x, metrics = _check_args(keys, rows, x, by, metrics)
+    keys = summary.keys
+    rows = summary.finished()
+    x, metrics = _choose(out, keys, rows, x, by, metrics)
 
     # one line per combination of the keys other than x (so that a line never mixes cases), each labelled with
     # its whole combination; with --by, lines share the colour of their --by value and differ in marker
     group_keys = ([by] if by is not None else []) + [k for k in keys if k not in (x, by)]
     groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
     for r in rows:
-        groups.setdefault(tuple(r.get(k) for k in group_keys), []).append(r)
+        groups.setdefault(tuple(r[k] for k in group_keys), []).append(r)
     order = sorted(groups, key=_sort_key)
     colours = {v: n for n, v in enumerate(dict.fromkeys(g[0] for g in order))} if by else {}
 
@@ -131,12 +129,10 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
         for g, name in enumerate(order):
             members = groups[name]
             diverged_x.extend(float(r[x]) for r in members if r["status"] == "diverged")
-            pts = sorted((r[x], r.get(m)) for r in members if r["status"] == "ok" and r.get(m) is not None)
+            pts = sorted((r[x], r[m]) for r in members if r["status"] == "ok" and r[m] is not None)
             label = ", ".join(f"{k.split('.')[-1]}={_label(v)}" for k, v in zip(group_keys, name)) or "all"
-            if by is not None:
-                colour, marker = f"C{colours[name[0]] % 10}", MARKERS[order.index(name) % len(MARKERS)]
-            else:
-                colour, marker = f"C{g % 10}", "o"
+            colour = f"C{colours[name[0]] % 10}" if by is not None else f"C{g % 10}"
+            marker = MARKERS[g % len(MARKERS)] if by is not None else "o"
             if not pts:             # only diverged cases: the line's legend entry stays, without points
                 ax.plot([], [], marker=marker, linestyle="-", color=colour, label=label + " (diverged)")
                 continue

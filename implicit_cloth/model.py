@@ -19,9 +19,9 @@ import numpy as np
 
 from . import cloth as _cloth
 from .assembly import SystemMatrix
+from .config.validate import fmt
 from .effects import Effect, build_effects
 from .errors import SceneError
-from .scene import _fmt
 
 
 @dataclass
@@ -123,10 +123,10 @@ class Model:
                 where = g["paths"][m]
                 p = self.geometry.corner(v, where) if isinstance(v, str) else int(v)
                 if p >= self.n:
-                    raise SceneError(f"{where}: vertex index out of range (the cloth has {self.n} vertices), got {_fmt(v)}")
+                    raise SceneError(where, f"vertex index out of range (the cloth has {self.n} vertices)", v)
                 if p in seen:
                     if g["velocity"] != vel[idx.index(p)]:
-                        raise SceneError(f"{where}: vertex {p} is pinned twice with different velocities, got {_fmt(v)}")
+                        raise SceneError(f"{where}: vertex {p} is pinned twice with different velocities, got {fmt(v)}")
                     continue
                 seen[p] = where
                 idx.append(p)
@@ -181,8 +181,8 @@ class Model:
     def system(self) -> SystemMatrix:
         """The fixed-pattern system matrix, built (once) on first use by an implicit integrator."""
         if self._system is None:
-            pairs = [e.pairs() for e in self.effects]
-            pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
+            blocks = [e.pairs() for e in self.effects]
+            pairs = np.concatenate(blocks) if blocks else np.zeros((0, 2), dtype=np.int64)
             self._system = SystemMatrix(self.n, pairs)
             for e in self.effects:
                 e.bind(self._system)

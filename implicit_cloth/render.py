@@ -26,12 +26,11 @@ from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from .errors import SceneError
+from .errors import SceneError, show
 from .export import select_frames
-from .export._files import write_bytes
-from .io import atomic_write
+from .export.staging import write_bytes
+from .files import atomic_write
 from .results import ObstacleWarning, read_run
-from .scene import _fmt
 
 CLOTH_COLOR = np.array([0.27, 0.51, 0.71])
 OBSTACLE_COLOR = np.array([0.75, 0.72, 0.68])
@@ -60,7 +59,7 @@ def _local_triangles(spec: Mapping[str, Any]) -> np.ndarray:
     elif shape == "capsule":
         m = trimesh.creation.capsule(height=float(spec["height"]), radius=float(spec["radius"]), count=[16, 16])
     else:   # mesh
-        from .scene import load_obstacle_mesh
+        from .geometry import load_obstacle_mesh
 
         verts, faces = load_obstacle_mesh(spec["path"])
         return np.asarray(verts, float)[faces] * float(spec["scale"])
@@ -77,8 +76,9 @@ def obstacle_triangles(obstacle: Mapping[str, Any], t: float, extent: tuple[np.n
     for the size and place of a plane's square.
     """
     from .collision.shapes import placement
+    from .config.registry import OBSTACLE_SHAPES
     from .errors import SceneError
-    from .scene import OBSTACLE_SHAPES, _obstacles
+    from .obstacles import validate_obstacles
 
     shape = obstacle.get("shape")
     if shape not in OBSTACLE_SHAPES:
@@ -86,7 +86,7 @@ def obstacle_triangles(obstacle: Mapping[str, Any], t: float, extent: tuple[np.n
                       RenderWarning, stacklevel=3)
         return None
     try:
-        spec = _obstacles([obstacle])[0]
+        spec = validate_obstacles([obstacle])[0]
         motion = placement(spec)
         if shape == "plane":
             c, half = extent
@@ -187,19 +187,19 @@ def _report_obstacles(run_dir: Path) -> list[Mapping[str, Any]]:
 
 def _check_options(movie: str, fps: float, backend: str) -> None:
     if movie not in MOVIES:
-        raise SceneError(f"--movie: must be one of {', '.join(MOVIES)}, got {_fmt(movie)}")
+        raise SceneError(f"--movie: must be one of {', '.join(MOVIES)}, got {show(movie)}")
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
-        raise SceneError(f"--fps: must be a finite number > 0, got {_fmt(fps)}")
+        raise SceneError(f"--fps: must be a finite number > 0, got {show(fps)}")
     if backend not in BACKENDS:
-        raise SceneError(f"--backend: must be one of {', '.join(BACKENDS)}, got {_fmt(backend)}")
+        raise SceneError(f"--backend: must be one of {', '.join(BACKENDS)}, got {show(backend)}")
 
 
 def _check_picture(backend: str, color: str, zoom: float, pixels: Sequence[int]) -> None:
     if backend == "matplotlib" and color != "solid":
         raise SceneError(f"--color: the matplotlib back-end draws only solid colour (use --backend pyvista), "
-                         f"got {_fmt(color)}")
+                         f"got {show(color)}")
     if not (isinstance(zoom, (int, float)) and math.isfinite(zoom) and zoom > 0):
-        raise SceneError(f"--zoom: must be a finite number > 0, got {_fmt(zoom)}")
+        raise SceneError(f"--zoom: must be a finite number > 0, got {show(zoom)}")
     if len(pixels) != 2 or any(not isinstance(p, int) or p < 16 or p > 8192 for p in pixels):
         raise SceneError(f"--size: must be two integers from 16 to 8192 (width height, pixels), got {list(pixels)}")
 
@@ -382,7 +382,8 @@ def _ffmpeg_encode(exe: str, pictures: Any, path: Path, fps: float) -> None:
         if proc is not None:
             _, err = proc.communicate()          # closes stdin (the end of the video) and reads the errors
             if proc.returncode != 0:
-                raise OSError(f"ffmpeg could not write {path.name} ({' '.join(err.decode(errors='replace').split())[:200]})")
+                why = " ".join(err.decode(errors="replace").split())[:200]
+                raise OSError(f"ffmpeg could not write {path.name} ({why})")
 
 
 def _render_matplotlib(run_dir: Path, run: Any, out: Path, chosen: list[int], movie: str,

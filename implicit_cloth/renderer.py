@@ -22,8 +22,8 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 
 from .errors import SceneError
+from .errors import show as _fmt
 from .results import Run, vertex_normals
-from .scene import _fmt
 
 COLORINGS: tuple[str, ...] = ("solid", "piece", "strain", "speed")
 CLOTH_COLOR = (0.27, 0.51, 0.71)

@@ -23,7 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .errors import SceneError
-from .scene import _fmt
+from .errors import show as _fmt
 
 #: Shapes with a drawable surface (every shape the collision code knows).
 DRAWN_SHAPES: tuple[str, ...] = ("sphere", "box", "cone", "capsule", "plane", "mesh")
@@ -209,9 +209,9 @@ def obstacle_mesh(spec: Mapping[str, Any], k: int, extent: tuple[np.ndarray, flo
         try:            # a stored scene's tables are validated already (and re-validating a keyframed one fails)
             motion = placement(spec)
         except KeyError:            # a hand-written table: validated (defaults filled in) as a scene's
-            from .scene import _obstacles
+            from .obstacles import validate_obstacles
 
-            spec = _obstacles([spec])[0]
+            spec = validate_obstacles([spec])[0]
             motion = placement(spec)
         if shape == "plane":
             c, half = extent
@@ -245,7 +245,7 @@ def _local_mesh(spec: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     elif shape == "capsule":     # centred, axis z, height = the segment's length
         m = trimesh.creation.capsule(height=float(spec["height"]), radius=float(spec["radius"]), count=[32, 32])
     else:   # mesh: the file's coordinates times scale (the collision code's MeshShape)
-        from .scene import load_obstacle_mesh
+        from .geometry import load_obstacle_mesh
 
         verts, faces = load_obstacle_mesh(spec["path"])
         return np.asarray(verts, float) * float(spec["scale"]), np.asarray(faces, np.int64)
@@ -294,7 +294,7 @@ def read_run(run_dir: str | os.PathLike[str]) -> Run:
                          ) from None
     if positions.ndim != 3 or positions.shape[0] == 0 or len(times) != len(positions):
         raise SceneError(f"RUN_DIR: {p} holds no frames (positions {positions.shape}), got {_fmt(str(run_dir))}")
-    from .outputs import check_pair
+    from .files import check_pair
 
     check_pair(run_dir)
     scene = _report_scene(run_dir)

@@ -16,10 +16,12 @@ from . import diagnostics
 from .adaptive import AdaptiveStats, StepController
 from .errors import DivergenceError, SolverWarning
 from .integrators import make_integrator
+from .files import save_npz
 from .interrupt import deferred_interrupt
-from .io import save_npz
 from .model import Model, State
-from .scene import Scene, _number, _run_length, load_scene
+from .config.validate import number as _number
+from .scene import Scene, load_scene
+from .scene import check_run_length as _run_length
 
 
 class Trajectory:

@@ -98,7 +98,8 @@ def test_filtered_pcg_matches_direct_constrained_solve():
     b = rng.standard_normal(3 * m.n)
     z = rng.standard_normal(3 * m.n)
     # pins fixed in 3 directions, one vertex constrained along a normal, one in two directions
-    nrm = rng.standard_normal(3); nrm /= np.linalg.norm(nrm)
+    nrm = rng.standard_normal(3)
+    nrm /= np.linalg.norm(nrm)
     e1, e2 = np.eye(3)[0], np.eye(3)[2]
     partial = np.array([5, 7])
     partial_S = np.stack([np.eye(3) - np.outer(nrm, nrm), np.eye(3) - np.outer(e1, e1) - np.outer(e2, e2)])

@@ -15,8 +15,7 @@ import numpy as np
 import pytest
 
 from implicit_cloth import SceneError
-from implicit_cloth.batch import (HEALTH_COLUMNS, MARKER, finished_row, load_sweep, run_sweep,
-                                  summary_columns)
+from implicit_cloth.batch import HEALTH_COLUMNS, MARKER, finished_row, load_sweep, run_sweep, summary_columns
 from implicit_cloth.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -248,7 +247,7 @@ def test_marker_is_trusted_only_with_matching_files(tmp_path):
 
 def test_salvage_keeps_a_finished_case_and_removes_temporaries(tmp_path):
     """What the pool does with in-flight cases after their workers are gone (interrupted or killed)."""
-    from implicit_cloth.batch import _salvage, run_case, store_result
+    from implicit_cloth.batch import run_case, salvage, store_result
 
     p = make(tmp_path, 'base = "base.toml"\n[sweep]\n"simulation.dt" = [0.01, 0.02]\n')
     done_case, cut_case = load_sweep(p).cases
@@ -258,7 +257,7 @@ def test_salvage_keeps_a_finished_case_and_removes_temporaries(tmp_path):
     (out / cut_case.case_id).mkdir()                          # killed while writing
     (out / cut_case.case_id / ".report.json.x2.tmp").write_text("{")
     recorded: list[dict] = []
-    assert _salvage([done_case, cut_case], out, recorded.append) == [done_case]
+    assert salvage([done_case, cut_case], out, recorded.append) == [done_case]
     assert [r["case_id"] for r in recorded] == [done_case.case_id] and recorded[0]["status"] == "ok"
     assert sorted(p.name for p in (out / done_case.case_id).iterdir()) == [MARKER, "report.json", "trajectory.npz"]
     assert list((out / cut_case.case_id).iterdir()) == []
@@ -329,7 +328,8 @@ def test_interrupted_sweep_resumes_to_completion(tmp_path):
     done = _count_markers(out)
     _, rows = read_csv(out / "summary.csv")
     assert 1 <= done < total and len(rows) == total
-    assert sum(r["status"] == "ok" for r in rows) == done and sum(r["status"] == "pending" for r in rows) == total - done
+    assert sum(r["status"] == "ok" for r in rows) == done
+    assert sum(r["status"] == "pending" for r in rows) == total - done
 
     # 2. SIGKILL of the whole run (parent and workers) part way
     proc = _batch_process(p, out)
@@ -449,7 +449,7 @@ def test_cli_batch_output_and_locked_directory(tmp_path, capsys):
 
 def test_worker_set_up_pins_every_blas_to_one_thread():
     """NumPy's and SciPy's own OpenBLAS both (SciPy's is loaded late, by scipy.linalg)."""
-    code = ("from implicit_cloth.batch import _worker_init; _worker_init(); "
+    code = ("from implicit_cloth.batch.runner import worker_init; worker_init(); "
             "import implicit_cloth as ic; from threadpoolctl import threadpool_info; "
             "ic.Simulator({'cloth': {'resolution': [4, 4], 'mass': 0.1, 'springs': {'structural': "
             "{'stiffness': 10.0}}}}, duration=0.02).run(); "
@@ -457,5 +457,5 @@ def test_worker_set_up_pins_every_blas_to_one_thread():
             "if i['user_api'] == 'blas'))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env=dict(os.environ, PYTHONPATH=str(ROOT))).stdout
-    libs = eval(out)   # noqa: S307 - our own printed list
+    libs = eval(out)
     assert libs and all(n == 1 for _, n in libs), libs

@@ -138,7 +138,7 @@ def test_headline_quick_via_cli(tmp_path):
     assert [r["k"] for r in res["rows"]] == res["ks"]
     for row in res["rows"]:
         assert set(row["results"]) == set(ic.INTEGRATORS)
-        for name, r in row["results"].items():
+        for r in row["results"].values():
             assert r["status"] in ("bracketed", "at_cap", "below_floor")
             if r["dt_max"] is not None:
                 assert r["one_second"]["method"] in ("run", "extrapolated") and r["one_second"]["steps"] >= 1

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 import implicit_cloth as ic
-from implicit_cloth.cli import _write_outputs, main
-from implicit_cloth.errors import SceneError
-from implicit_cloth.outputs import check_pair, remove_stale
+from implicit_cloth.cli import main
+from implicit_cloth.errors import InputError
+from implicit_cloth.files import _sha256, check_pair, remove_stale, write_run
 
 SCENE = """
 [simulation]
@@ -114,30 +114,29 @@ def test_outputs_name_each_other_and_a_kill_between_renames_is_detected(tmp_path
     out = tmp_path / "run"
     out.mkdir()
     traj, data = _pair(tmp_path, hanging_scene, 0.1)
-    _write_outputs(out, traj, data)
+    write_run(out, traj, data)
     report = json.loads((out / "report.json").read_text())
-    with np.load(out / "trajectory.npz") as z:
-        assert str(z["run_id"]) == report["outputs"]["run_id"]
+    assert report["outputs"] == {"trajectory": "trajectory.npz",
+                                 "trajectory_sha256": _sha256(out / "trajectory.npz")}
     check_pair(out)
     first = (out / "report.json").read_bytes()
     # a second run into the same directory is killed (SIGKILL) right after renaming its trajectory
     code = textwrap.dedent(f"""
         import os, signal, sys
         import implicit_cloth as ic
-        from implicit_cloth import outputs
-        from implicit_cloth.cli import _write_outputs
+        from implicit_cloth import files
         real = os.replace
         def replace(a, b):
             real(a, b)
             if str(b).endswith("trajectory.npz"):
                 os.kill(os.getpid(), signal.SIGKILL)
-        outputs.os.replace = replace
+        files.os.replace = replace
         scene = {json.dumps(hanging_scene)!r}
         import json
         d = json.loads(scene)
         d["simulation"]["duration"] = 0.2
         sim = ic.Simulator(d)
-        _write_outputs(__import__("pathlib").Path({str(out)!r}), sim.run(), sim.scene.data)
+        files.write_run(__import__("pathlib").Path({str(out)!r}), sim.run(), sim.scene.data)
     """)
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert p.returncode == -signal.SIGKILL, p.stderr[-2000:]
@@ -146,11 +145,11 @@ def test_outputs_name_each_other_and_a_kill_between_renames_is_detected(tmp_path
         assert len(z["times"]) == 11                                    # ... beside the new trajectory
     stale = [q for q in out.iterdir() if q.name.startswith(".")]
     assert [q.name.split(".")[1] for q in stale] == ["report"]         # the killed writer's staged report
-    with pytest.raises(SceneError, match="report.json belongs to another run than trajectory.npz"):
+    with pytest.raises(InputError, match="report.json belongs to another run than trajectory.npz"):
         check_pair(out)
     assert main(["export", str(out), "--format", "obj"]) == 2
     assert "report.json belongs to another run" in capsys.readouterr().err
-    _write_outputs(out, traj, data)                                     # the next write: a pair, no leftovers
+    write_run(out, traj, data)                                     # the next write: a pair, no leftovers
     check_pair(out)
     assert not [q for q in out.iterdir() if q.name.startswith(".")]
 
@@ -159,15 +158,15 @@ def test_a_failed_write_keeps_the_previous_pair_and_leaves_no_temporary(tmp_path
     out = tmp_path / "run"
     out.mkdir()
     traj, data = _pair(tmp_path, hanging_scene, 0.1)
-    _write_outputs(out, traj, data)
+    write_run(out, traj, data)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    from implicit_cloth import outputs
+    from implicit_cloth import files
 
     def full_disk(*a, **k):
         raise OSError(28, "No space left on device")
-    monkeypatch.setattr(outputs.json, "dumps", full_disk)              # the report fails after the trajectory
+    monkeypatch.setattr(files.json, "dumps", full_disk)                # the report fails after the trajectory
     with pytest.raises(OSError):
-        _write_outputs(out, traj, data)
+        write_run(out, traj, data)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 

@@ -181,10 +181,10 @@ def test_divergent_run_exits_3_and_writes_partial_results(tmp_path, capsys):
 
 
 def test_readme_scene_is_valid_and_runs(tmp_path):
-    """The annotated scene in README.md uses every key; it must load and run."""
-    text = (ROOT / "README.md").read_text()
+    """The annotated scene in docs/scene.md uses every key; it must load and run."""
+    text = (ROOT / "docs" / "scene.md").read_text()
     blocks = re.findall(r"```toml\n(.*?)```", text, re.S)
-    assert blocks, "README.md has no toml block"
+    assert blocks, "docs/scene.md has no toml block"
     scene = write(tmp_path, blocks[0], "readme.toml")
     out = tmp_path / "readme"
     assert run(str(scene), "--out", str(out), "--duration", "0.03", "--frame-rate", "100") == 0
@@ -222,7 +222,7 @@ def test_outputs_get_a_normal_file_mode(tmp_path):
     import os
     import stat
 
-    from implicit_cloth.io import save_json
+    from implicit_cloth.files import save_json
 
     path = save_json(tmp_path / "r.json", {"a": 1})
     mask = os.umask(0)

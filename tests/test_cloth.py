@@ -20,7 +20,9 @@ def test_grid_conventions_and_spring_counts():
     assert len(g.springs["structural"]) == (nx - 1) * ny + nx * (ny - 1)
     assert len(g.springs["shear"]) == 2 * (nx - 1) * (ny - 1)
     assert len(g.springs["bend"]) == (nx - 2) * ny + nx * (ny - 2)
-    L = lambda k: np.linalg.norm(np.diff(g.positions[g.springs[k]], axis=1)[:, 0], axis=1)
+    def L(k):
+        return np.linalg.norm(np.diff(g.positions[g.springs[k]], axis=1)[:, 0], axis=1)
+
     assert set(np.round(L("structural"), 12)) == {0.5}
     assert np.allclose(L("shear"), np.hypot(0.5, 0.5))
     assert set(np.round(L("bend"), 12)) == {1.0}

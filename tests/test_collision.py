@@ -448,11 +448,11 @@ def test_tilted_plane_obstacle_normal_and_restitution():
 
 
 def test_readme_collision_block_is_valid_and_runs(tmp_path):
-    """The annotated [[obstacles]] / [collision] block of README.md loads and runs with a cloth."""
+    """The annotated [[obstacles]] / [collision] block of docs/scene.md loads and runs with a cloth."""
     import re
     from pathlib import Path
 
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    text = (Path(__file__).resolve().parents[1] / "docs" / "scene.md").read_text()
     block = next(b for b in re.findall(r"```toml\n(.*?)```", text, re.S) if "[[obstacles]]" in b)
     path = tmp_path / "c.toml"
     path.write_text('[cloth]\nmass = 0.1\nresolution = [6, 6]\ncenter = [0.0, 0.0, 1.0]\nplane = "xy"\n'

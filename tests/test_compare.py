@@ -9,9 +9,9 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.figure import Figure
 
-from implicit_cloth.cli import main  # noqa: E402
+from implicit_cloth.cli import main
 
 
 @pytest.fixture
@@ -30,7 +30,9 @@ def sweep_dir(tmp_path):
     out = tmp_path / "sweep"
     out.mkdir()
     keys = ["simulation.dt", "simulation.integrator", "cloth.springs.structural.stiffness"]
-    (out / "summary.json").write_text(json.dumps({"keys": keys, "cases": cases}))
+    counts = {"ok": 11, "diverged": 1, "failed": 0, "pending": 0}
+    (out / "summary.json").write_text(json.dumps({"sweep": "sweep.toml", "base": "base.toml", "keys": keys,
+                                                  "columns": list(cases[0]), "counts": counts, "cases": cases}))
     return out
 
 

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 import implicit_cloth as ic
-from implicit_cloth.cli import _write_outputs, main
+from implicit_cloth.cli import main
+from implicit_cloth.files import write_run
 
 trimesh = pytest.importorskip("trimesh")
 
@@ -29,7 +30,7 @@ def _run(tmp_path, scene, name="run"):
     traj = sim.run()
     out = tmp_path / name
     out.mkdir()
-    _write_outputs(out, traj, sim.scene.data)
+    write_run(out, traj, sim.scene.data)
     return out
 
 
@@ -94,7 +95,7 @@ def test_usd_points_normals_and_obstacle_transforms_at_every_frame(moving_run, t
     xf = UsdGeom.Xformable(box)
     local = np.array(UsdGeom.Mesh(box).GetPointsAttr().Get())
     np.testing.assert_allclose(np.abs(local), 0.1, atol=1e-7)                # the box's corners, local frame
-    for k, t in enumerate(times):
+    for t in times:
         m = np.array(xf.ComputeLocalToWorldTransform(float(t * 100.0)))
         world = local @ m[:3, :3] + m[3, :3]                                  # USD: row vectors
         c, R = _box_pose(moving_run, t)

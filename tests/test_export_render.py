@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import implicit_cloth as ic
-from implicit_cloth.cli import _write_outputs, main
+from implicit_cloth.cli import main
+from implicit_cloth.files import write_run
 
 trimesh = pytest.importorskip("trimesh")
 PIL_Image = pytest.importorskip("PIL.Image")
@@ -27,7 +28,7 @@ def run_dir(tmp_path, hanging_scene):
     traj = sim.run()
     out = tmp_path / "run"
     out.mkdir()
-    _write_outputs(out, traj, sim.scene.data)
+    write_run(out, traj, sim.scene.data)
     return out
 
 
@@ -125,7 +126,8 @@ def test_core_import_stays_light():
     import sys
 
     code = ("import sys, implicit_cloth, implicit_cloth.cli; "
-            "print(sorted(m for m in ('dask', 'distributed', 'matplotlib', 'PIL', 'pyvista', 'vtk', 'pxr') if m in sys.modules))")
+            "print(sorted(m for m in ('dask', 'distributed', 'matplotlib', 'PIL', 'pyvista', 'vtk', 'pxr') "
+            "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
@@ -138,11 +140,11 @@ def test_core_import_stays_light():
 def test_render_places_obstacles_where_the_collider_has_them(motion):
     """The drawn box's corners are the collision code's box corners at the same time (same motion code)."""
     from implicit_cloth.collision.shapes import build
+    from implicit_cloth.obstacles import validate_obstacles
     from implicit_cloth.render import obstacle_triangles
-    from implicit_cloth.scene import _obstacles
 
     table = {"shape": "box", "size": [0.2, 0.4, 0.6], **motion}
-    shape, mo = build(_obstacles([table])[0])
+    shape, mo = build(validate_obstacles([table])[0])
     for t in (0.0, 0.3, 0.7):
         drawn = np.unique(obstacle_triangles(table, t, (np.zeros(3), 1.0)).reshape(-1, 3).round(12), axis=0)
         corners = mo.to_world(shape.feature_points, t)

@@ -294,9 +294,9 @@ def test_pin_teleported_ten_metres():
                                                 ("verlet", 1e-4, 1e-12), ("rk4", 1e-4, 1e-12),
                                                 ("backward_euler", H, 1e-6), ("bdf2", H, 1e-6)])
 def test_free_cloth_in_zero_gravity_drifts_with_constant_momentum(integrator, dt, tol):
-    """No pins, no gravity, stiff springs (1e6 N/m; 1e4 for the explicit methods), a crumpled start and a drift velocity: the momentum
-    sum m_i v_i stays p0 to round-off (explicit, 1e-12 of sum m_i |v_i|) or to the solver's tolerance
-    (implicit, tolerance 1e-8, checked at 1e-6), and the centre of mass moves at p0 / M."""
+    """No pins, no gravity, stiff springs (1e6 N/m; 1e4 for the explicit methods), a crumpled start and a drift
+    velocity: the momentum sum m_i v_i stays p0 to round-off (explicit, 1e-12 of sum m_i |v_i|) or to the
+    solver's tolerance (implicit, tolerance 1e-8, checked at 1e-6), and the centre of mass moves at p0 / M."""
     explicit = integrator not in ("backward_euler", "bdf2")
     scene = _scene(k=1e4 if explicit else 1e6, pins=())      # explicit ones need dt < 2 / w_max ~ 4e-4 s
     scene["effects"] = {}

@@ -6,11 +6,10 @@ import numpy as np
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
+from test_collision import TOL, _mesh_file, _passes_around, cloth_scene, depths
 
 import implicit_cloth as ic
 from implicit_cloth.collision.shapes import KeyframedMotion, Motion
-
-from test_collision import TOL, _mesh_file, _passes_around, cloth_scene, depths
 
 R0 = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()      # the shape's own orientation
 KEYS = dict(times=[0.1, 0.4, 0.5, 1.0],
@@ -192,12 +191,12 @@ def test_keyframed_sphere_through_a_hanging_cloth_stops_and_comes_back(dt):
 
 
 def test_readme_keyframes_block_and_example_load_and_run(tmp_path):
-    """The README's keyframes block and examples/keyframed_sphere.toml are valid scenes that step."""
+    """The scene reference's keyframes block and examples/keyframed_sphere.toml are valid scenes that step."""
     import re
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    block = next(b for b in re.findall(r"```toml\n(.*?)```", (root / "README.md").read_text(), re.S)
+    block = next(b for b in re.findall(r"```toml\n(.*?)```", (root / "docs" / "scene.md").read_text(), re.S)
                  if "keyframes" in b)
     path = tmp_path / "k.toml"
     path.write_text('[cloth]\nmass = 0.1\nresolution = [6, 6]\ncenter = [0.0, 0.0, 1.0]\nplane = "xz"\n'

@@ -28,6 +28,7 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 import implicit_cloth as ic
+from implicit_cloth import config
 from implicit_cloth import scene as sc
 
 SETTINGS_VALID = settings(max_examples=300, deadline=None, derandomize=True,
@@ -51,6 +52,22 @@ def vec(n: int, lim: float):
 def valid_scenes(draw):
     integrator = draw(st.sampled_from(ic.INTEGRATORS))
     nx, ny = draw(st.integers(2, 6)), draw(st.integers(2, 6))
+    simulation = _simulation(draw, integrator)
+    cloth = _cloth(draw, nx, ny)
+    effects = _effects(draw)
+    scene = {"cloth": cloth}
+    if draw(st.booleans()) or effects:
+        scene["effects"] = effects
+    if draw(st.booleans()) or integrator != "backward_euler":
+        scene["simulation"] = simulation
+    if draw(st.booleans()):
+        scene["solver"] = {"tolerance": draw(log_uniform(-8, -1)),
+                           "max_iterations": draw(st.integers(1, 1000)),
+                           "preconditioner": draw(st.sampled_from(config.PRECONDITIONERS.names()))}
+    return scene
+
+
+def _simulation(draw, integrator):
     dt = draw(log_uniform(-3, -1.3))                      # 1 ms .. 50 ms
     simulation = {"integrator": integrator, "dt": dt, "duration": draw(st.integers(1, 25)) * dt,
                   "frame_rate": draw(st.sampled_from([5.0, 30.0, 60.0, 1000.0]))}
@@ -65,6 +82,10 @@ def valid_scenes(draw):
         simulation["strain_limit"] = {"max_strain": draw(log_uniform(-2, 0))}
         if draw(st.booleans()):
             simulation["strain_limit"]["iterations"] = draw(st.integers(1, 50))
+    return simulation
+
+
+def _cloth(draw, nx, ny):
     cloth = {}
     if draw(st.booleans()):
         cloth["size"] = [draw(log_uniform(-1, 0.7)), draw(log_uniform(-1, 0.7))]
@@ -99,13 +120,21 @@ def valid_scenes(draw):
     if draw(st.booleans()):
         pins.append({"vertices": draw(st.lists(vertex, min_size=1, max_size=2)), "velocity": draw(vec(3, 0.5))})
     if pins or draw(st.booleans()):
-        # the same vertex in a moving group and as a fixed pin would be a (tested) error: keep the groups apart
-        fixed = {p for p in pins if not isinstance(p, dict)}
-        for p in pins:
-            if isinstance(p, dict):
-                p["vertices"] = [v for v in p["vertices"] if v not in fixed and _index(v, nx, ny) not in
-                                 {_index(f, nx, ny) for f in fixed}] or None
-        cloth["pins"] = [p for p in pins if not (isinstance(p, dict) and p["vertices"] is None)]
+        cloth["pins"] = _pins_apart(pins, nx, ny)
+    return cloth
+
+
+def _pins_apart(pins, nx, ny):
+    """The same vertex in a moving group and as a fixed pin would be a (tested) error: keep the groups apart."""
+    fixed = {p for p in pins if not isinstance(p, dict)}
+    for p in pins:
+        if isinstance(p, dict):
+            p["vertices"] = [v for v in p["vertices"] if v not in fixed and _index(v, nx, ny) not in
+                             {_index(f, nx, ny) for f in fixed}] or None
+    return [p for p in pins if not (isinstance(p, dict) and p["vertices"] is None)]
+
+
+def _effects(draw):
     effects = {}
     if draw(st.booleans()):
         effects["gravity"] = draw(st.one_of(st.just([0.0, 0.0, -9.81]), vec(3, 20.0)))
@@ -113,16 +142,7 @@ def valid_scenes(draw):
         effects["drag"] = draw(st.floats(0.0, 2.0))
         if draw(st.booleans()):
             effects["wind"] = {"velocity": draw(vec(3, 5.0))}
-    scene = {"cloth": cloth}
-    if draw(st.booleans()) or effects:
-        scene["effects"] = effects
-    if draw(st.booleans()) or integrator != "backward_euler":
-        scene["simulation"] = simulation
-    if draw(st.booleans()):
-        scene["solver"] = {"tolerance": draw(log_uniform(-8, -1)),
-                           "max_iterations": draw(st.integers(1, 1000)),
-                           "preconditioner": draw(st.sampled_from(sc.PRECONDITIONERS))}
-    return scene
+    return effects
 
 
 def _index(v, nx, ny):
@@ -202,9 +222,9 @@ SCHEMA = {
     **{f"cloth.springs.{k}.{p}": "nonneg" for k in sc.SPRING_KINDS for p in ("stiffness", "damping")},
     "effects.gravity": "vec3", "effects.drag": "nonneg", "effects.wind.velocity": "vec3",
 }
-TABLES = {"": sc._TOP_KEYS, "simulation": sc._SIM_KEYS, "solver": sc._SOLVER_KEYS, "cloth": sc._CLOTH_KEYS,
-          "cloth.springs": sc.SPRING_KINDS, "effects": sc._EFFECT_KEYS, "effects.wind": ("velocity",),
-          "simulation.adaptive": sc._ADAPTIVE_KEYS, "simulation.strain_limit": sc._STRAIN_LIMIT_KEYS,
+TABLES = {"": sc.TOP_KEYS, "simulation": sc.SIM_KEYS, "solver": sc.SOLVER_KEYS, "cloth": sc.CLOTH_KEYS,
+          "cloth.springs": sc.SPRING_KINDS, "effects": config.EFFECTS.names(), "effects.wind": ("velocity",),
+          "simulation.adaptive": sc.ADAPTIVE_KEYS, "simulation.strain_limit": sc.STRAIN_LIMIT_KEYS,
           **{f"cloth.springs.{k}": ("stiffness", "damping") for k in sc.SPRING_KINDS}}
 
 

@@ -233,7 +233,7 @@ def test_numba_path_is_the_numpy_iteration():
 
 
 def test_accelerator_falls_back_to_numpy_without_numba(monkeypatch):
-    from implicit_cloth.solvers import accel
+    from implicit_cloth import backend as accel
 
     monkeypatch.setattr(accel, "numba_available", lambda: False)
     assert accel.resolve("auto") == "numpy" and accel.resolve("numpy") == "numpy"

@@ -21,7 +21,7 @@ import trimesh
 
 import implicit_cloth as ic
 from implicit_cloth import cli, cloth
-from implicit_cloth import io as icio
+from implicit_cloth import files as icio
 
 INF, NAN = float("inf"), float("nan")
 
@@ -456,7 +456,7 @@ class _FullDisk:
 
 
 def _disk_full_on_open_number(monkeypatch, k, budget=10):
-    """From the k-th file opened for writing by implicit_cloth.io (1-based), the disk is full."""
+    """From the k-th file opened for writing by implicit_cloth.files (1-based), the disk is full."""
     real = os.fdopen
     count = {"n": 0}
 
@@ -538,13 +538,13 @@ def test_cli_second_run_failing_to_write_keeps_the_first_results(tmp_path, monke
         monkeypatch.setattr(np, "savez_compressed", interrupted)
     else:   # the disk fills up half-way through the trajectory (1st file written) or the report (2nd)
         k = 1 if fault == "trajectory_half_written" else 2
-        real = cli._write_outputs
+        real = cli.write_run
 
         def write_outputs(*a, **kw):
             _disk_full_on_open_number(monkeypatch, k, budget=200)
             return real(*a, **kw)
 
-        monkeypatch.setattr(cli, "_write_outputs", write_outputs)
+        monkeypatch.setattr(cli, "write_run", write_outputs)
     code = cli.main(args + ["--duration", "0.1"])
     monkeypatch.undo()
 

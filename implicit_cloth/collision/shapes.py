@@ -544,7 +544,7 @@ def build(spec: dict) -> tuple[Shape, RigidMotion]:
     elif kind == "cone":
         shape = Cone(spec["radius"], spec["height"])
     elif kind == "mesh":
-        from ..scene import load_obstacle_mesh
+        from ..geometry import load_obstacle_mesh
 
         verts, faces = load_obstacle_mesh(spec["path"])
         shape = MeshShape(verts * spec["scale"], faces)

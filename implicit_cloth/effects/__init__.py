@@ -23,6 +23,17 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from ..config.registry import EFFECTS
+
+# The [effects] table, in evaluation order. Each entry's module checks its own value (``validate(path,
+# value)``) and is imported only when a scene declares it; ``requires`` names the entry it acts through
+# and why (wind has no force of its own: drag acts relative to it).
+EFFECTS.register("gravity", module="implicit_cloth.effects.gravity")
+EFFECTS.register("drag", module="implicit_cloth.effects.drag")
+EFFECTS.register("wind", module="implicit_cloth.effects.wind", requires=(
+    "drag", "wind acts through air drag; set effects.drag, the drag coefficient in N*s/m^3, for effects.wind "
+            "to have an effect"))
+
 #: effect name -> (module, builder function); modules are imported on demand only.
 _REGISTRY: dict[str, tuple[str, str]] = {
     "gravity": ("implicit_cloth.effects.gravity", "build"),

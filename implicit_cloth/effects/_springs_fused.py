@@ -1,7 +1,7 @@
 """Compiled (numba) spring assembly: :meth:`Springs.linearize` in one pass over the springs.
 
 The optional accelerator of :mod:`implicit_cloth.effects.springs` (numpy stays
-the reference and the fallback; :func:`implicit_cloth.solvers.accel.resolve`
+the reference and the fallback; :func:`implicit_cloth.backend.resolve`
 chooses at bind time). Same equations and the same arithmetic as the numpy
 path, fused per spring ``s = (i, j)`` (notation of Baraff & Witkin 1998, §4):
 

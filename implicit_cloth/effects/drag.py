@@ -12,6 +12,13 @@ from typing import Any
 
 import numpy as np
 
+from ..config.validate import number
+
+
+def validate(path: str, value: Any) -> float:
+    """``effects.drag``: the drag coefficient, N*s/m^3, >= 0."""
+    return number(path, value, lo=0.0)
+
 
 class Drag:
     """Linear drag with coefficient ``c`` (N*s/m^3), against an optional wind field."""

@@ -6,6 +6,13 @@ from typing import Any
 
 import numpy as np
 
+from ..config.validate import vector
+
+
+def validate(path: str, value: Any) -> list[float]:
+    """``effects.gravity``: a 3-vector, m/s^2."""
+    return vector(path, value, 3)
+
 
 class Gravity:
     """Uniform gravitational acceleration ``g`` (m/s^2) acting on every vertex mass."""

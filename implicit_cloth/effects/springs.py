@@ -128,12 +128,12 @@ class Springs:
         """Precompute the index maps into ``system`` and choose the implementation (numba or numpy).
 
         The compiled path (:mod:`implicit_cloth.effects._springs_fused`) runs when
-        :func:`implicit_cloth.solvers.accel.resolve` says numba (installed, not
+        :func:`implicit_cloth.backend.resolve` says numba (installed, not
         disabled by ``IMPLICIT_CLOTH_ACCELERATOR=numpy``); numpy is the reference.
         The system's own choice (``system.accelerator``, made the same way when it
         was built) is followed, so that one matrix is assembled by one path.
         """
-        from ..solvers.accel import resolve
+        from ..backend import resolve
 
         #: "numba" (one compiled pass over the springs) or "numpy" (reference), chosen here
         self.accelerator = resolve(getattr(system, "accelerator", None))
@@ -215,7 +215,8 @@ class Springs:
 
 def build(model: Any, params: dict[str, dict[str, float]]) -> Springs:
     """Springs of the declared kinds with rest lengths taken from the initial positions."""
-    pairs, k, kd, kinds = [], [], [], {}
+    pairs, k, kd = [], [], []
+    kinds: dict[str, slice] = {}
     start = 0
     for kind in ("structural", "shear", "bend"):
         if kind not in params:

@@ -6,7 +6,20 @@ acts on the cloth's velocity *relative* to the wind.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+
+from ..config.validate import check_keys, vector
+from ..errors import SceneError
+
+
+def validate(path: str, value: Any) -> dict[str, Any]:
+    """``effects.wind``: a table with the wind's ``velocity`` [vx, vy, vz], m/s."""
+    check_keys(path, value, ("velocity",))
+    if "velocity" not in value:
+        raise SceneError(f"{path}.velocity", "missing (wind needs a velocity [vx, vy, vz] in m/s)")
+    return {"velocity": vector(f"{path}.velocity", value["velocity"], 3)}
 
 
 class ConstantWind:

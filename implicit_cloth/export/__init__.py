@@ -28,9 +28,9 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import SceneError
+from ..errors import show as _fmt
 from ..results import read_run
-from ..scene import _fmt
-from ._files import write_bytes
+from .staging import write_bytes
 
 FORMATS: tuple[str, ...] = ("usd", "pc2", "glb", "gltf", "obj", "ply")
 

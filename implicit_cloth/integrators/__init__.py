@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..scene import INTEGRATORS
+from ..config.registry import INTEGRATORS as REGISTRY
 from .backward_euler import BackwardEuler
 from .base import ImplicitIntegrator, Integrator, StepInfo
 from .bdf2 import BDF2
@@ -17,7 +17,10 @@ from .verlet import Verlet
 INTEGRATOR_CLASSES: dict[str, type[Integrator]] = {
     c.name: c for c in (ForwardEuler, SymplecticEuler, Verlet, RK4, BackwardEuler, BDF2)
 }
-assert tuple(INTEGRATOR_CLASSES) == INTEGRATORS
+for _cls in INTEGRATOR_CLASSES.values():   # the registry that scene validation reads (names, implicit or not)
+    REGISTRY.register(_cls.name, factory=_cls, implicit=_cls.implicit)
+#: Names of the integrators, in the order used by reports and benchmarks.
+INTEGRATORS: tuple[str, ...] = tuple(INTEGRATOR_CLASSES)
 
 
 def make_integrator(name: str, model: Any, solver: dict[str, Any] | None = None) -> Integrator:
@@ -29,4 +32,4 @@ def make_integrator(name: str, model: Any, solver: dict[str, Any] | None = None)
     return cls(model, solver)
 
 
-__all__ = ["INTEGRATOR_CLASSES", "Integrator", "ImplicitIntegrator", "StepInfo", "make_integrator"]
+__all__ = ["INTEGRATORS", "INTEGRATOR_CLASSES", "Integrator", "ImplicitIntegrator", "StepInfo", "make_integrator"]

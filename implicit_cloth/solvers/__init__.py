@@ -4,8 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from .accel import numba_available, set_default_accelerator
+from ..backend import numba_available, set_default_accelerator
+from ..config.registry import PRECONDITIONERS
 from .pcg import BlockJacobi, Filter, SolveResult, filtered_pcg
+
+# solver.preconditioner: the names scene validation accepts, the default first
+PRECONDITIONERS.register("multigrid", default=True)
+PRECONDITIONERS.register("block_jacobi")
 
 __all__ = ["BlockJacobi", "Filter", "SolveResult", "filtered_pcg", "make_preconditioner", "numba_available",
            "set_default_accelerator"]
@@ -17,7 +22,7 @@ def make_preconditioner(name: str, model: Any, accelerator: str | None = None):
     ``"multigrid"`` (default): geometric multigrid for grid cloths, smoothed
     aggregation for meshes (:mod:`implicit_cloth.solvers.multigrid`), run by
     the compiled kernels when ``accelerator`` resolves to ``"numba"``
-    (:mod:`implicit_cloth.solvers.accel`; ``None``: the process default).
+    (:mod:`implicit_cloth.backend`; ``None``: the process default).
     ``"block_jacobi"``: 3x3 block Jacobi (numpy only).
     """
     if name == "block_jacobi":

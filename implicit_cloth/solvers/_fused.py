@@ -310,7 +310,8 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
     vertices, diagonal blocks ``dg[voff[l]:voff[l+1]]`` and upper blocks
     ``uv[uoff[l]:uoff[l+1]]`` at local block indices ``uI``, ``uJ`` (see :func:`_symmv`);
     the finest level's are unfiltered, the filter being applied on the fly
-    (:func:`_fsymmv`), and with ``use6`` read from their six-number copy ``u6``. Its vectors live at ``3 voff[l]`` in the work arrays ``wb``
+    (:func:`_fsymmv`), and with ``use6`` read from their six-number copy ``u6``. Its vectors live at
+    ``3 voff[l]`` in the work arrays ``wb``
     (right-hand sides), ``wx`` (iterates) and ``wr`` (products, residuals, then smoothed
     iterates). The prolongation l -> l+1 has rows ``pptr[poff[l]:poff[l] + n_l + 1]``
     (local), entries ``pnnz[l]:pnnz[l+1]`` of ``pidx``/``pval``; its transpose likewise in
@@ -357,7 +358,8 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
 
     ``adg``, ``auI``, ``auJ``, ``auv``: the fine matrix (unfiltered, float64, symmetric storage of
-    :func:`_symmv`) that CG multiplies by (its upper blocks from ``au6`` with ``use6``); the V-cycle's packed hierarchy (:func:`vcycle`) may hold its
+    :func:`_symmv`) that CG multiplies by (its upper blocks from ``au6`` with ``use6``); the V-cycle's packed
+    hierarchy (:func:`vcycle`) may hold its
     own (float32) copy of it as level 0.
 
     Returns ``(dv, iterations, residual, converged, error)``.

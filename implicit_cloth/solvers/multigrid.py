@@ -29,12 +29,14 @@ indefinite (see :func:`coarse_cholesky`).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
 from ..assembly import SystemMatrix, accumulate_product
-from .accel import resolve as resolve_accelerator
+from ..backend import resolve as resolve_accelerator
 from .blocks import block_diagonal_operator, inv3
 from .pcg import Filter, SolveResult
 
@@ -136,7 +138,7 @@ class Multigrid:
         self.name = name
         self.omega = float(omega)
         self.fine = system
-        #: "numba" (fused compiled kernels) or "numpy" (reference), see :mod:`implicit_cloth.solvers.accel`
+        #: "numba" (fused compiled kernels) or "numpy" (reference), see :mod:`implicit_cloth.backend`
         self.accelerator = resolve_accelerator(accelerator)
         self.levels: list[_Level] = []
         cur = system
@@ -146,7 +148,7 @@ class Multigrid:
             cur = lvl.system
         self._blocks: list[np.ndarray] = []
         self._A: list[sp.csr_array] = []
-        self._chol = None
+        self._chol: Any = None
         #: shift added to the coarsest matrix by the last setup (0: none; see coarse_cholesky)
         self.coarse_shift = 0.0
         if self.accelerator == "numba":
@@ -393,7 +395,6 @@ class _FusedHierarchy:
 
         self.mg = mg
         systems = mg._systems()
-        L = len(mg.levels)
         fine = mg.fine
         self.voff = np.cumsum([0] + [sm.n for sm in systems]).astype(np.int64)
         f = self.precond_dtype = (np.float32 if FLOAT32_MIN_VERTICES is not None
@@ -427,7 +428,7 @@ class _FusedHierarchy:
         self.wr = np.zeros(3 * int(self.voff[-1]))
         self.filt: Filter | None = None
         self.version = -1
-        self._touch_key = None
+        self._touch_key: bytes | None = None
 
     def _filter_arrays(self, filt: Filter) -> None:
         self.clist = np.concatenate([filt.fixed, filt.partial]).astype(np.int64)
@@ -532,7 +533,7 @@ class _FusedHierarchy:
 
         r = np.ascontiguousarray(r, dtype=float)
         out = np.empty_like(r)
-        _fused.vcycle(r, out, *self._hier(), self.wb, self.wx, self.wr)
+        _fused.vcycle(r, out, *self._hier(), self.wb, self.wx, self.wr)  # type: ignore[call-arg]  # numba Dispatcher
         return out
 
     def pcg(self, A, b, z, filt, tol=1e-3, max_iterations=1000, guess=None, mass=None, rule="estimate",

@@ -24,8 +24,8 @@ def staged_path(target: str | os.PathLike[str]) -> Iterator[Path]:
 
 
 def write_bytes(target: str | os.PathLike[str], data: bytes) -> Path:
-    """Write ``data`` to ``target`` atomically (:func:`implicit_cloth.io.atomic_write`)."""
-    from ..io import atomic_write
+    """Write ``data`` to ``target`` atomically (:func:`implicit_cloth.files.atomic_write`)."""
+    from ..files import atomic_write
 
     def write(fh: IO[bytes]) -> None:
         fh.write(data)

@@ -1,4 +1,4 @@
-"""Which implementation of the multigrid-preconditioned PCG runs: numpy (reference) or numba (optional).
+"""The numerical back-end of a model: numpy (the reference) or numba (the optional compiled kernels).
 
 ``"numba"`` compiles the fused kernels of :mod:`implicit_cloth.solvers._fused`
 (install the ``fast`` extra: ``pip install implicit_cloth[fast]``); ``"numpy"``
