@@ -185,9 +185,10 @@ def run_scene(name: str, scene, dt: float, skip: int, every: int, samples: int) 
             A, b, z, filt, precond, mass, tol, res = cap.systems.pop()
             ref = direct_solve(A, b, z, filt)
             rec = record(A, b, z, filt, precond, mass, ref)
-            # the library's own solver on the same system, to check the emulation of its rule
+            # the library's own solver on the same system (a copy: the numpy loop, with the preconditioner's
+            # V-cycle), to check the emulation of its rule
             _, lib = pcg_mod.filtered_pcg(A, b, z, filt, precond, tol, 20000, mass=mass,
-                                          rule=precond.stopping_rule)
+                                          rule=precond.stopping_rule, compiled=False)
             row = evaluate(rec)
             row.update({"t": float(sim.time), "sim_tol": tol, "library_iterations": lib.iterations,
                         "emulated": stop_iteration(rec, tol, "new"), "contacts": int(len(filt.partial))})

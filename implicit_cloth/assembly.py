@@ -13,10 +13,10 @@ the values:
    CSR matrix whose ``indptr``/``indices`` never change (no COO->CSR
    conversion, no Python loop over springs).
 
-With the numba accelerator (:func:`implicit_cloth.backend.resolve`,
-chosen when the matrix is built) :meth:`~SystemMatrix.reset_diagonal`,
-:meth:`~SystemMatrix.add_diagonal` and :meth:`~SystemMatrix.finalize` are compiled passes
-(:mod:`implicit_cloth._assembly_fused`); numpy is the reference and fallback.
+:meth:`~SystemMatrix.reset_diagonal`, :meth:`~SystemMatrix.add_diagonal` and
+:meth:`~SystemMatrix.finalize` run through the matrix's :class:`~implicit_cloth.backend.Backend`
+(the model's): numpy is the reference, numba runs compiled passes
+(:mod:`implicit_cloth.kernels.assembly`) with the same values.
 
 CSR rather than BSR: scipy's CSR mat-vec was measured 5-10 % faster here.
 """
@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+
+from .backend import Backend, get_backend
 
 
 class SystemMatrix:
@@ -37,19 +39,15 @@ class SystemMatrix:
     pairs : (P, 2) int array
         Vertex pairs coupled by some force term. Both ``(i, j)`` and ``(j, i)``
         blocks are created; duplicates and self-pairs are merged.
-    accelerator : {"auto", "numba", "numpy"} or None
-        Implementation of :meth:`reset_diagonal` and :meth:`finalize` (``None``: the
-        process default, see :mod:`implicit_cloth.backend`).
+    accelerator : Backend, {"auto", "numba", "numpy"} or None
+        The back-end of :meth:`reset_diagonal`, :meth:`add_diagonal` and :meth:`finalize`
+        (a model passes its own; ``None``: the process default, see :mod:`implicit_cloth.backend`).
     """
 
-    def __init__(self, n: int, pairs: np.ndarray, accelerator: str | None = None) -> None:
-        from .backend import resolve
-
+    def __init__(self, n: int, pairs: np.ndarray, accelerator: str | Backend | None = None) -> None:
         self.n = int(n)
-        #: "numba" (compiled reset and finalize) or "numpy" (reference)
-        self.accelerator = resolve(accelerator)
-        if self.accelerator == "numba":
-            from . import _assembly_fused  # noqa: F401  (imports numba; compiles or loads from cache on first use)
+        #: the back-end the matrix is assembled with (the springs bound to it follow it)
+        self.backend = get_backend(accelerator)
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         pairs = pairs[pairs[:, 0] != pairs[:, 1]]
         diag = np.arange(n, dtype=np.int64)
@@ -86,6 +84,11 @@ class SystemMatrix:
         self.csr = sp.csr_array(
             (np.zeros(9 * self.n_blocks), cols_scalar, indptr), shape=(3 * n, 3 * n))
         self.csr.has_sorted_indices = True
+
+    @property
+    def accelerator(self) -> str:
+        """The back-end's name: "numba" (compiled passes) or "numpy" (reference)."""
+        return self.backend.name
 
     def block_index(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """Positions in :attr:`blocks` of the blocks ``(i, j)`` (which must be in the pattern)."""
@@ -124,25 +127,11 @@ class SystemMatrix:
         d : (N,) float array
             The diagonal values (kg for the mass matrix).
         """
-        d = self._diagonal_values(d, "reset_diagonal")
-        if self.accelerator == "numba":
-            from ._assembly_fused import reset_diagonal
-
-            reset_diagonal(self.blocks, self.diag_index, d)
-            return
-        self.blocks.fill(0.0)
-        self.add_diagonal(d)
+        self.backend.reset_diagonal(self.blocks, self.diag_index, self._diagonal_values(d, "reset_diagonal"))
 
     def add_diagonal(self, d: np.ndarray) -> None:
         """Add ``d[i] I`` to diagonal block i (e.g. ``c_v c A_i`` of linear drag), ``d`` of shape (N,)."""
-        d = self._diagonal_values(d, "add_diagonal")
-        if self.accelerator == "numba":
-            from ._assembly_fused import add_diagonal
-
-            add_diagonal(self.blocks, self.diag_index, d)
-            return
-        for a in range(3):
-            self.blocks[self.diag_index, a, a] += d
+        self.backend.add_diagonal(self.blocks, self.diag_index, self._diagonal_values(d, "add_diagonal"))
 
     def _diagonal_values(self, d: np.ndarray, what: str) -> np.ndarray:
         d = np.ascontiguousarray(d, dtype=float)
@@ -155,12 +144,7 @@ class SystemMatrix:
 
         Bumps :attr:`version`.
         """
-        if self.accelerator == "numba":
-            from ._assembly_fused import blocks_to_csr
-
-            blocks_to_csr(self.bptr, self.blocks, self.csr.data)
-        else:
-            np.take(self.blocks.reshape(-1), self._perm, out=self.csr.data)
+        self.backend.blocks_to_csr(self.blocks, self.bptr, self._perm, self.csr.data)
         self.version += 1
         return self.csr
 

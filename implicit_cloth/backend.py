@@ -1,17 +1,22 @@
 """The numerical back-end of a model: numpy (the reference) or numba (the optional compiled kernels).
 
-``"numba"`` compiles the fused kernels of :mod:`implicit_cloth.solvers._fused`
+``"numba"`` compiles the fused kernels of :mod:`implicit_cloth.kernels`
 (install the ``fast`` extra: ``pip install implicit_cloth[fast]``); ``"numpy"``
 is the reference path and the fallback; ``"auto"`` (default) picks numba when
 it is installed. The default can be set for a process with the environment
 variable ``IMPLICIT_CLOTH_ACCELERATOR`` (``auto``, ``numba`` or ``numpy``) or
 :func:`set_default_accelerator`.
+
+:func:`get_backend` gives the :class:`Backend` object for a choice: a model resolves it once and
+passes it to its system matrix, springs and preconditioner, which dispatch through it.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import os
+
+import numpy as np
 
 ACCELERATORS = ("auto", "numba", "numpy")
 _ENV = "IMPLICIT_CLOTH_ACCELERATOR"
@@ -54,3 +59,92 @@ def resolve(name: str | None = None) -> str:
         raise ValueError("accelerator: numba is not installed (pip install 'implicit_cloth[fast]'), got 'numba'")
     return name
 
+
+
+class BackendMismatch(RuntimeError):
+    """A compiled path was asked to work on data it was not set up for (a bug in the caller, never a fallback)."""
+
+
+class Backend:
+    """The numerical back-end of a model, resolved once (:func:`get_backend`) and passed to what it builds.
+
+    The assembly (:class:`~implicit_cloth.assembly.SystemMatrix`), the springs and the multigrid
+    preconditioner dispatch through it: this class is the numpy reference; :class:`NumbaBackend`
+    runs the same passes compiled. ``name`` is what the run report calls it.
+    """
+
+    name = "numpy"
+    #: whether the compiled kernels run (the springs and the multigrid PCG choose their path from it)
+    compiled = False
+
+    def __repr__(self) -> str:
+        return f"Backend({self.name!r})"
+
+    # ----------------------------------------------------------------- assembly passes
+    def reset_diagonal(self, blocks: np.ndarray, diag_index: np.ndarray, d: np.ndarray) -> None:
+        """Zero every block, then set diagonal block i to ``d[i] I``."""
+        blocks.fill(0.0)
+        self.add_diagonal(blocks, diag_index, d)
+
+    def add_diagonal(self, blocks: np.ndarray, diag_index: np.ndarray, d: np.ndarray) -> None:
+        """Add ``d[i] I`` to diagonal block i."""
+        for a in range(3):
+            blocks[diag_index, a, a] += d
+
+    def blocks_to_csr(self, blocks: np.ndarray, bptr: np.ndarray, perm: np.ndarray, data: np.ndarray) -> None:
+        """Copy the (n_blocks, 3, 3) block values into a CSR value array (``perm``: the numpy path's index)."""
+        np.take(blocks.reshape(-1), perm, out=data)
+
+    # ----------------------------------------------------------------- springs
+    def spring_lengths(self, x: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """``|x_j - x_i|`` of every spring, m."""
+        d = x[j] - x[i]
+        return np.sqrt(np.einsum("ij,ij->i", d, d))
+
+
+class NumbaBackend(Backend):
+    """The compiled kernels (the ``fast`` extra): the same passes as :class:`Backend`, same values."""
+
+    name = "numba"
+    compiled = True
+
+    def __init__(self) -> None:
+        from .kernels import assembly as _kernels  # noqa: F401  (imports numba; kernels compile or load from cache on use)
+
+    def reset_diagonal(self, blocks: np.ndarray, diag_index: np.ndarray, d: np.ndarray) -> None:
+        from .kernels.assembly import reset_diagonal
+
+        reset_diagonal(blocks, diag_index, d)
+
+    def add_diagonal(self, blocks: np.ndarray, diag_index: np.ndarray, d: np.ndarray) -> None:
+        from .kernels.assembly import add_diagonal
+
+        add_diagonal(blocks, diag_index, d)
+
+    def blocks_to_csr(self, blocks: np.ndarray, bptr: np.ndarray, perm: np.ndarray, data: np.ndarray) -> None:
+        from .kernels.assembly import blocks_to_csr
+
+        blocks_to_csr(bptr, blocks, data)
+
+    def spring_lengths(self, x: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        from .kernels.springs import spring_lengths
+
+        out = np.empty(len(i))
+        spring_lengths(np.ascontiguousarray(x, dtype=float), i, j, out)
+        return out
+
+
+_BACKENDS: dict[str, Backend] = {}
+
+
+def get_backend(name: str | Backend | None = None) -> Backend:
+    """The back-end for a requested accelerator (``None``: the process default, see :func:`resolve`).
+
+    One object per back-end and process; a :class:`Backend` is returned as it is.
+    """
+    if isinstance(name, Backend):
+        return name
+    key = resolve(name)
+    if key not in _BACKENDS:
+        _BACKENDS[key] = NumbaBackend() if key == "numba" else Backend()
+    return _BACKENDS[key]

@@ -19,6 +19,7 @@ import numpy as np
 
 from . import cloth as _cloth
 from .assembly import SystemMatrix
+from .backend import Backend, get_backend
 from .config.validate import fmt
 from .effects import Effect, build_effects
 from .errors import SceneError
@@ -60,6 +61,9 @@ class Model:
 
     def __init__(self, scene: Any) -> None:
         self.scene = scene
+        #: the numerical back-end (numpy or numba), resolved once here: the system matrix, the springs bound
+        #: to it and the preconditioner dispatch through it
+        self.backend: Backend = get_backend()
         c = scene.data["cloth"]
         kinds = tuple(c["springs"])
         if c["kind"] == "grid":
@@ -183,7 +187,7 @@ class Model:
         if self._system is None:
             blocks = [e.pairs() for e in self.effects]
             pairs = np.concatenate(blocks) if blocks else np.zeros((0, 2), dtype=np.int64)
-            self._system = SystemMatrix(self.n, pairs)
+            self._system = SystemMatrix(self.n, pairs, self.backend)
             for e in self.effects:
                 e.bind(self._system)
         return self._system

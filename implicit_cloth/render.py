@@ -26,7 +26,7 @@ from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from .errors import SceneError, show
+from .errors import InputError, SceneError, show
 from .export import select_frames
 from .export.staging import write_bytes
 from .files import atomic_write
@@ -77,7 +77,6 @@ def obstacle_triangles(obstacle: Mapping[str, Any], t: float, extent: tuple[np.n
     """
     from .collision.shapes import placement
     from .config.registry import OBSTACLE_SHAPES
-    from .errors import SceneError
     from .obstacles import validate_obstacles
 
     shape = obstacle.get("shape")
@@ -187,21 +186,21 @@ def _report_obstacles(run_dir: Path) -> list[Mapping[str, Any]]:
 
 def _check_options(movie: str, fps: float, backend: str) -> None:
     if movie not in MOVIES:
-        raise SceneError(f"--movie: must be one of {', '.join(MOVIES)}, got {show(movie)}")
+        raise InputError(f"--movie: must be one of {', '.join(MOVIES)}, got {show(movie)}")
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
-        raise SceneError(f"--fps: must be a finite number > 0, got {show(fps)}")
+        raise InputError(f"--fps: must be a finite number > 0, got {show(fps)}")
     if backend not in BACKENDS:
-        raise SceneError(f"--backend: must be one of {', '.join(BACKENDS)}, got {show(backend)}")
+        raise InputError(f"--backend: must be one of {', '.join(BACKENDS)}, got {show(backend)}")
 
 
 def _check_picture(backend: str, color: str, zoom: float, pixels: Sequence[int]) -> None:
     if backend == "matplotlib" and color != "solid":
-        raise SceneError(f"--color: the matplotlib back-end draws only solid colour (use --backend pyvista), "
+        raise InputError(f"--color: the matplotlib back-end draws only solid colour (use --backend pyvista), "
                          f"got {show(color)}")
     if not (isinstance(zoom, (int, float)) and math.isfinite(zoom) and zoom > 0):
-        raise SceneError(f"--zoom: must be a finite number > 0, got {show(zoom)}")
+        raise InputError(f"--zoom: must be a finite number > 0, got {show(zoom)}")
     if len(pixels) != 2 or any(not isinstance(p, int) or p < 16 or p > 8192 for p in pixels):
-        raise SceneError(f"--size: must be two integers from 16 to 8192 (width height, pixels), got {list(pixels)}")
+        raise InputError(f"--size: must be two integers from 16 to 8192 (width height, pixels), got {list(pixels)}")
 
 
 def _pick_backend(backend: str) -> str:
@@ -332,7 +331,7 @@ def _mp4_writer_available() -> None:
     except ImportError:
         pass
     if shutil.which("ffmpeg") is None:
-        raise SceneError("--movie: mp4 needs imageio-ffmpeg (pip install 'implicit_cloth[render]') or ffmpeg on "
+        raise InputError("--movie: mp4 needs imageio-ffmpeg (pip install 'implicit_cloth[render]') or ffmpeg on "
                          "the PATH (or use --movie gif), got 'mp4'")
 
 

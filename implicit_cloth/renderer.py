@@ -21,7 +21,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from .errors import SceneError
+from .errors import InputError
 from .errors import show as _fmt
 from .results import Run, vertex_normals
 
@@ -151,7 +151,7 @@ class _Scene:
 
 def check_coloring(color: str) -> str:
     if color not in COLORINGS:
-        raise SceneError(f"--color: must be one of {', '.join(COLORINGS)}, got {_fmt(color)}")
+        raise InputError(f"--color: must be one of {', '.join(COLORINGS)}, got {_fmt(color)}")
     return color
 
 

@@ -22,7 +22,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .errors import SceneError
+from .errors import InputError, SceneError
 from .errors import show as _fmt
 
 #: Shapes with a drawable surface (every shape the collision code knows).
@@ -277,23 +277,23 @@ def read_run(run_dir: str | os.PathLike[str]) -> Run:
 
     Raises
     ------
-    SceneError
+    InputError
         If the trajectory is missing or unreadable (one line naming it).
     """
     run_dir = Path(run_dir)
     p = run_dir / "trajectory.npz"
     if not p.is_file():
-        raise SceneError(f"RUN_DIR: no trajectory.npz (not a run output directory), got {_fmt(str(run_dir))}")
+        raise InputError(f"RUN_DIR: no trajectory.npz (not a run output directory), got {_fmt(str(run_dir))}")
     try:
         with np.load(p) as z:
             positions = np.asarray(z["positions"], float)
             times = np.asarray(z["times"], float)
             faces = np.asarray(z["faces"], np.int64)
     except (OSError, ValueError, KeyError) as exc:
-        raise SceneError(f"RUN_DIR: cannot read {p} ({' '.join(str(exc).split())}), got {_fmt(str(run_dir))}"
+        raise InputError(f"RUN_DIR: cannot read {p} ({' '.join(str(exc).split())}), got {_fmt(str(run_dir))}"
                          ) from None
     if positions.ndim != 3 or positions.shape[0] == 0 or len(times) != len(positions):
-        raise SceneError(f"RUN_DIR: {p} holds no frames (positions {positions.shape}), got {_fmt(str(run_dir))}")
+        raise InputError(f"RUN_DIR: {p} holds no frames (positions {positions.shape}), got {_fmt(str(run_dir))}")
     from .files import check_pair
 
     check_pair(run_dir)

@@ -7,6 +7,7 @@ import trimesh
 
 import implicit_cloth as ic
 from implicit_cloth import cloth
+from implicit_cloth.backend import BackendMismatch
 from implicit_cloth.solvers import Filter, filtered_pcg, make_preconditioner, numba_available
 from implicit_cloth.solvers.multigrid import Multigrid, grid_prolongations
 
@@ -79,7 +80,11 @@ def test_solver_matches_direct_solve_within_tolerance(tmp_path, kind, preconditi
     pc.setup(m.system, filt)
     if accelerator == "numba":   # the system's own matrix, unchanged since setup: the whole PCG runs compiled
         A = m.system.csr
-        assert pc.fused_pcg(A, b, z, filt) is not None and pc.fused_pcg(A.copy(), b, z, filt) is None
+        assert pc.fused_pcg(A, b, z, filt) is not None
+        with pytest.raises(BackendMismatch, match="A is not the fine system's own matrix"):
+            pc.fused_pcg(A.copy(), b, z, filt)           # never a silent numpy solve
+        with pytest.raises(BackendMismatch, match="filter is not the one of the last setup"):
+            filtered_pcg(A, b, z, Filter(m.n, m.pinned), pc)
     dv, res = filtered_pcg(A, b, z, filt, pc, tol=tol, max_iterations=5000,
                            mass=np.repeat(m.masses, 3), rule=pc.stopping_rule)
     ref = _direct(A, b, z, filt)
@@ -114,7 +119,9 @@ def test_multigrid_levels_and_galerkin_products():
 
 @pytest.mark.parametrize("accelerator", ACCELERATORS)
 def test_stale_preconditioner_still_converges(accelerator):
-    """A preconditioner set up one step earlier is a worse one (hence the per-step refresh), never a wrong answer."""
+    """A preconditioner set up one step earlier is a worse one (hence the per-step refresh), never a wrong answer:
+    on the numpy back-end it still converges; the compiled PCG, which multiplies by the blocks packed at setup,
+    refuses it (BackendMismatch) instead of solving another matrix."""
     sim = ic.Simulator(_scene(), dt=H)
     m, A_old, _ = _system(sim, steps=5)
     filt = Filter(m.n, m.pinned)
@@ -126,6 +133,12 @@ def test_stale_preconditioner_still_converges(accelerator):
     assert not np.allclose(A.data, A_old.data)
     ref = _direct(A, b, np.zeros_like(b), filt)
     its = {}
+    if accelerator == "numba":                     # the compiled CG takes the system's own matrix only
+        with pytest.raises(BackendMismatch, match="assembled again after the preconditioner's setup"):
+            filtered_pcg(m.system.csr, b, np.zeros_like(b), filt, stale, tol=1e-4, max_iterations=3000)
+        dv, res = filtered_pcg(m.system.csr, b, np.zeros_like(b), filt, fresh, tol=1e-4, max_iterations=3000)
+        assert res.converged and np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= 1e-4
+        return
     for name, p in (("stale", stale), ("fresh", fresh)):
         dv, res = filtered_pcg(A, b, np.zeros_like(b), filt, p, tol=1e-4, max_iterations=3000)
         assert res.converged, name
@@ -219,7 +232,7 @@ def test_numba_path_is_the_numpy_iteration():
         assert np.allclose(v1, v0, rtol=1e-10, atol=1e-12 * np.abs(v0).max())
         assert r1.iterations == r0.iterations and r1.converged
         assert np.allclose(dv1, dv0, rtol=1e-9, atol=1e-12 * np.abs(dv0).max())
-        fh = mg1._fused                        # the compiled path keeps diagonal + upper blocks, packed
+        fh = mg1.engine                        # the compiled path keeps diagonal + upper blocks, packed
         for li, l0 in enumerate(mg0.levels, start=1):
             ref = l0.system.blocks
             packed = np.concatenate([fh.dg[fh.voff[li]:fh.voff[li + 1]], fh.uv[fh.uoff[li]:fh.uoff[li + 1]]])
@@ -275,7 +288,7 @@ def test_numba_float32_vcycle_matches_direct_solve(monkeypatch, tol):
     filt = Filter(m.n, m.pinned, np.array([m.n // 2]), np.diag([1.0, 1.0, 0.0])[None])
     mg = make_preconditioner("multigrid", m, "numba")
     mg.setup(None, filt)
-    assert mg._fused.uv.dtype == np.float32 and mg._fused.auv.dtype == np.float64
+    assert mg.engine.uv.dtype == np.float32 and mg.engine.auv.dtype == np.float64
     dv, res = filtered_pcg(m.system.csr, b, z, filt, mg, tol=tol, mass=np.repeat(m.masses, 3))
     ref = _direct(A, b, z, filt)
     assert res.converged and np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= tol
@@ -306,7 +319,7 @@ def _estimators():
 
     out = [pytest.param(pcg.current_error_estimate, id="numpy")]
     if numba_available():
-        from implicit_cloth.solvers import _fused
+        from implicit_cloth.kernels import pcg as _fused
 
         out.append(pytest.param(_fused.error_estimate, id="numba"))
     return out
@@ -374,7 +387,7 @@ def test_numba_fine_blocks_need_not_be_symmetric_themselves():
     mg = make_preconditioner("multigrid", m, "numba")
     filt = Filter(m.n, m.pinned)
     mg.setup(None, filt)
-    assert mg._fused.use6                        # springs: alpha I + beta u u^T, exactly symmetric
+    assert mg.engine.use6                        # springs: alpha I + beta u u^T, exactly symmetric
     i, j = sm.block_rows, sm.block_cols
     up = np.flatnonzero(i < j)[::7]              # skew some blocks, keeping the matrix symmetric
     skew = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]) * 1e-3 * np.abs(sm.blocks).max()
@@ -383,7 +396,7 @@ def test_numba_fine_blocks_need_not_be_symmetric_themselves():
     A = sm.finalize()
     assert abs(A - A.T).max() == 0.0
     mg.setup(None, filt)
-    assert not mg._fused.use6
+    assert not mg.engine.use6
     z = np.zeros_like(b)
     dv, res = filtered_pcg(A, b, z, filt, mg, tol=1e-6)
     ref = _direct(A, b, z, filt)

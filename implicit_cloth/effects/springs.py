@@ -36,6 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..assembly import accumulate_product
+from ..backend import Backend, get_backend
 
 
 class Springs:
@@ -73,6 +74,8 @@ class Springs:
         vals = np.concatenate([np.ones(s), -np.ones(s)])
         self._B = sp.csr_array((vals, (rows, cols)), shape=(self.n, s))
         self._G: sp.csr_array | None = None
+        #: the back-end: numpy until :meth:`bind`, then the system matrix's (one matrix, one path)
+        self.backend: Backend = get_backend("numpy")
 
     # ------------------------------------------------------------------ geometry
     def _frame(self, x: np.ndarray):
@@ -83,17 +86,15 @@ class Springs:
         u = d * inv[:, None]
         return d, l, u, ok, inv
 
+    @property
+    def accelerator(self) -> str:
+        """The back-end's name: "numba" (one compiled pass over the springs) or "numpy" (reference)."""
+        return self.backend.name
+
     def lengths(self, x: np.ndarray) -> np.ndarray:
         """Current length of each spring, m (compiled on the numba path: the adaptive step's strain and
         energy checks measure every state)."""
-        if getattr(self, "accelerator", None) == "numba":
-            from ._springs_fused import spring_lengths
-
-            out = np.empty(len(self.i))
-            spring_lengths(np.ascontiguousarray(x, dtype=float), self.i, self.j, out)
-            return out
-        d = x[self.j] - x[self.i]
-        return np.sqrt(np.einsum("ij,ij->i", d, d))
+        return self.backend.spring_lengths(x, self.i, self.j)
 
     def strain(self, x: np.ndarray) -> np.ndarray:
         """Engineering strain ``(l - L0) / L0`` of each spring (0 where ``L0 = 0``)."""
@@ -127,18 +128,13 @@ class Springs:
     def bind(self, system: Any) -> None:
         """Precompute the index maps into ``system`` and choose the implementation (numba or numpy).
 
-        The compiled path (:mod:`implicit_cloth.effects._springs_fused`) runs when
-        :func:`implicit_cloth.backend.resolve` says numba (installed, not
-        disabled by ``IMPLICIT_CLOTH_ACCELERATOR=numpy``); numpy is the reference.
-        The system's own choice (``system.accelerator``, made the same way when it
-        was built) is followed, so that one matrix is assembled by one path.
+        The springs follow the system's back-end (``system.backend``, the model's), so that one
+        matrix is assembled by one path: numba runs one compiled pass over the springs
+        (:mod:`implicit_cloth.kernels.springs`), numpy is the reference.
         """
-        from ..backend import resolve
-
-        #: "numba" (one compiled pass over the springs) or "numpy" (reference), chosen here
-        self.accelerator = resolve(getattr(system, "accelerator", None))
-        if self.accelerator == "numba":
-            from . import _springs_fused  # noqa: F401  (imports numba; compiles or loads from cache on first use)
+        self.backend = system.backend
+        if self.backend.compiled:
+            from ..kernels import springs as _kernels  # noqa: F401  (imports numba; compiles or loads from cache on first use)
 
             # springs visited in (i, j) order: each vertex's blocks are written while they are in cache
             # (about 2x faster at 256^2 than the kinds' order; only the order of the sums changes)
@@ -169,10 +165,10 @@ class Springs:
         (i,i) and (j,j) blocks with + and the (i,j), (j,i) blocks with - (one
         sparse product giving contiguous (n_blocks, 9) values, added in one pass).
         On the numba path all of it is one compiled pass over the springs
-        (:func:`implicit_cloth.effects._springs_fused.springs_linearize`).
+        (:func:`implicit_cloth.kernels.springs.springs_linearize`).
         """
-        if self.accelerator == "numba":
-            from ._springs_fused import springs_linearize
+        if self.backend.compiled:
+            from ..kernels.springs import springs_linearize
 
             with_w = kw is not None and w is not None
             c = np.ascontiguousarray   # the kernel is compiled for C-contiguous float64 arrays (no copy if so)

@@ -27,7 +27,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..errors import SceneError
+from ..errors import InputError
 from ..errors import show as _fmt
 from ..results import read_run
 from .staging import write_bytes
@@ -40,7 +40,7 @@ def load_run(run_dir: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, n
 
     Raises
     ------
-    SceneError
+    InputError
         If the file is missing or unreadable (one line naming it).
     """
     run = read_run(run_dir)
@@ -54,7 +54,7 @@ def select_frames(n_frames: int, frames: Sequence[int] | None) -> list[int]:
     out = []
     for k, f in enumerate(frames):
         if not -n_frames <= f < n_frames:
-            raise SceneError(f"--frames[{k}]: frame index out of range (the run has {n_frames} frames, "
+            raise InputError(f"--frames[{k}]: frame index out of range (the run has {n_frames} frames, "
                              f"0 to {n_frames - 1}, or negative from the end), got {f}")
         out.append(f % n_frames)
     return out
@@ -83,17 +83,17 @@ def export_run(run_dir: str | os.PathLike[str], fmt: str = "usd", out: str | os.
 
     Raises
     ------
-    SceneError
+    InputError
         Unknown format, a frame out of range or out of order (one line).
     ImportError
         ``usd`` without usd-core (``pip install 'implicit_cloth[usd]'``).
     """
     if fmt not in FORMATS:
-        raise SceneError(f"--format: must be one of {', '.join(FORMATS)}, got {_fmt(fmt)}")
+        raise InputError(f"--format: must be one of {', '.join(FORMATS)}, got {_fmt(fmt)}")
     run = read_run(run_dir)
     idx = select_frames(run.n_frames, frames)
     if fmt in ("usd", "pc2", "glb", "gltf") and any(b <= a for a, b in zip(idx, idx[1:])):
-        raise SceneError(f"--frames: an animation needs its frames in increasing order without repeats, "
+        raise InputError(f"--frames: an animation needs its frames in increasing order without repeats, "
                          f"got {list(frames or [])}")
     target = Path(out) if out is not None else Path(run_dir) / "export"
     target.mkdir(parents=True, exist_ok=True)

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import SceneError
+from ..errors import InputError
 from ..results import Run, vertex_normals
 from .meshes import Z_UP_TO_Y_UP, y_up
 from .staging import write_bytes
@@ -80,7 +80,7 @@ def _quaternions(Rs: np.ndarray) -> np.ndarray:
 def build_gltf(run: Run, frames: list[int]) -> tuple[dict[str, Any], bytes]:
     """The glTF JSON document and its binary buffer for the chosen frames of ``run``."""
     if len(frames) - 1 > MAX_MORPH_FRAMES:
-        raise SceneError(f"--frames: glTF keeps one morph target per frame and takes at most "
+        raise InputError(f"--frames: glTF keeps one morph target per frame and takes at most "
                          f"{MAX_MORPH_FRAMES + 1} frames (use --frames to pick fewer, or --format usd / pc2), "
                          f"got {len(frames)}")
     b = _Builder()

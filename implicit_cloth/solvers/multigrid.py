@@ -29,14 +29,14 @@ indefinite (see :func:`coarse_cholesky`).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
 from ..assembly import SystemMatrix, accumulate_product
-from ..backend import resolve as resolve_accelerator
+from ..backend import Backend, BackendMismatch, get_backend
 from .blocks import block_diagonal_operator, inv3
 from .pcg import Filter, SolveResult
 
@@ -105,7 +105,7 @@ class _Level:
         nc = P.shape[1]
         keys = np.unique(I * nc + J)
         off = keys[keys // nc != keys % nc]
-        self.system = SystemMatrix(nc, np.stack([off // nc, off % nc], axis=1))
+        self.system = SystemMatrix(nc, np.stack([off // nc, off % nc], axis=1), fine.backend)
         rows = self.system.block_index(I, J)
         #: Galerkin map: coarse blocks (nbc, 9) = T @ fine blocks (nb, 9)
         self.T = sp.csr_array((w, (rows, b)), shape=(self.system.n_blocks, nb))
@@ -134,12 +134,13 @@ class Multigrid:
     stopping_rule = "estimate"
 
     def __init__(self, system: SystemMatrix, prolongations: list, omega: float = 0.7,
-                 name: str = "multigrid", accelerator: str | None = None) -> None:
+                 name: str = "multigrid", accelerator: str | Backend | None = None) -> None:
         self.name = name
         self.omega = float(omega)
         self.fine = system
-        #: "numba" (fused compiled kernels) or "numpy" (reference), see :mod:`implicit_cloth.backend`
-        self.accelerator = resolve_accelerator(accelerator)
+        #: the back-end: the system's (the model's) unless one is named; numba runs the packed hierarchy
+        #: and the whole PCG compiled (:class:`_FusedHierarchy`), numpy the reference (:class:`_NumpyHierarchy`)
+        self.backend = system.backend if accelerator is None else get_backend(accelerator)
         self.levels: list[_Level] = []
         cur = system
         for P in prolongations:
@@ -151,10 +152,18 @@ class Multigrid:
         self._chol: Any = None
         #: shift added to the coarsest matrix by the last setup (0: none; see coarse_cholesky)
         self.coarse_shift = 0.0
-        if self.accelerator == "numba":
-            self._fused = _FusedHierarchy(self, prolongations)
-        else:
-            self._D = [block_diagonal_operator(s.n) for s in self._systems()]
+        self.engine: _NumpyHierarchy | _FusedHierarchy = (
+            _FusedHierarchy(self, prolongations) if self.backend.compiled else _NumpyHierarchy(self))
+
+    @property
+    def accelerator(self) -> str:
+        """The back-end's name, as the run report gives it: "numba" or "numpy"."""
+        return self.backend.name
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the whole filtered PCG runs compiled (:meth:`fused_pcg`) with this preconditioner."""
+        return self.backend.compiled
 
     def _systems(self) -> list[SystemMatrix]:
         return [self.fine] + [lvl.system for lvl in self.levels]
@@ -169,58 +178,70 @@ class Multigrid:
         ``system`` is the assembled fine system (the one this hierarchy was built on, read through
         ``self.fine``); it is part of the preconditioner protocol shared with :class:`BlockJacobi`.
         """
-        if self.accelerator == "numba":
-            self._fused.setup(filt)
-            C = self._fused.coarse_dense() if self.levels else self._A[-1].toarray()
-        else:
-            self._setup_numpy(filt)
-            C = self._A[-1].toarray()
+        C = self.engine.setup(filt)
         self._chol, self.coarse_shift = coarse_cholesky(C)
 
-    def _setup_numpy(self, filt: Filter) -> None:
-        """Level matrices as CSR and inverted diagonal blocks as block-diagonal CSR (the reference path)."""
-        fine = self.fine
+    def apply(self, r: np.ndarray) -> np.ndarray:
+        """One V-cycle: an approximation of ``(S A S + I - S)^-1 r``."""
+        return self.engine.apply(r)
+
+    def fused_pcg(self, A, b: np.ndarray, z: np.ndarray, filt: Filter, **kw) -> tuple[np.ndarray, SolveResult]:
+        """The whole filtered PCG compiled (the numba back-end; :func:`~.pcg.filtered_pcg` calls it).
+
+        ``A`` must be the fine system's own CSR matrix unchanged since :meth:`setup` (no
+        ``finalize`` in between) and ``filt`` the filter of the last setup: the compiled CG
+        multiplies by the blocks packed at setup. Anything else is a
+        :class:`~implicit_cloth.backend.BackendMismatch`, never a silent numpy solve.
+        """
+        if not isinstance(self.engine, _FusedHierarchy):
+            raise BackendMismatch(f"fused_pcg: the {self.name} preconditioner runs on the numpy back-end, "
+                                  f"which has no compiled PCG")
+        return self.engine.pcg(A, b, z, filt, **kw)
+
+    def coarse_solve(self, b: np.ndarray) -> np.ndarray:
+        """The coarsest level's exact solve with the factor of the last setup."""
+        return sla.cho_solve(self._chol, b, check_finite=False)
+
+
+class _NumpyHierarchy:
+    """The reference path: every level's matrix as CSR, inverted diagonal blocks as block-diagonal CSR."""
+
+    def __init__(self, mg: Multigrid) -> None:
+        self.mg = mg
+        self._D = [block_diagonal_operator(s.n) for s in mg._systems()]
+
+    def setup(self, filt: Filter) -> np.ndarray:
+        """Refresh the levels; returns the coarsest matrix (dense) to factorise."""
+        mg = self.mg
+        fine = mg.fine
         blocks = fine.blocks
         if not filt.trivial:
             blocks = _filtered_blocks(fine, blocks, filt)
-        systems = self._systems()
-        self._A, self._blocks = [], []
+        systems = mg._systems()
+        mg._A, mg._blocks = [], []
         for l, sm in enumerate(systems):
             if l > 0:
                 sm.reset()
-                accumulate_product(self.levels[l - 1].T, blocks.reshape(-1, 9), sm.blocks.reshape(-1, 9))
+                accumulate_product(mg.levels[l - 1].T, blocks.reshape(-1, 9), sm.blocks.reshape(-1, 9))
                 blocks = sm.blocks
                 A = sm.finalize()
             elif blocks is fine.blocks:
                 A = fine.csr
             else:
                 A = _csr_from_blocks(fine, blocks)
-            self._A.append(A)
-            self._blocks.append(blocks)
+            mg._A.append(A)
+            mg._blocks.append(blocks)
             self._D[l].data[:] = inv3(blocks[sm.diag_index]).reshape(-1)
+        return mg._A[-1].toarray()
 
     def apply(self, r: np.ndarray) -> np.ndarray:
-        """One V-cycle: an approximation of ``(S A S + I - S)^-1 r``."""
-        if self.accelerator == "numba":
-            return self._fused.apply(r)
         return self._vcycle(0, r)
 
-    def fused_pcg(self, A, b: np.ndarray, z: np.ndarray, filt: Filter, **kw):
-        """The whole filtered PCG compiled (numba path), or ``None`` when it does not apply.
-
-        It applies when the accelerator is numba, ``A`` is the fine system's own
-        CSR matrix unchanged since :meth:`setup` (no ``finalize`` in between) and
-        ``filt`` is the filter of the last setup; otherwise the caller runs the
-        numpy CG loop (with this V-cycle as preconditioner).
-        """
-        if self.accelerator != "numba":
-            return None
-        return self._fused.pcg(A, b, z, filt, **kw)
-
     def _vcycle(self, l: int, b: np.ndarray) -> np.ndarray:
-        if l == len(self.levels):
-            return sla.cho_solve(self._chol, b, check_finite=False)
-        A, D, lvl, w = self._A[l], self._D[l], self.levels[l], self.omega
+        mg = self.mg
+        if l == len(mg.levels):
+            return mg.coarse_solve(b)
+        A, D, lvl, w = mg._A[l], self._D[l], mg.levels[l], mg.omega
         x = w * (D @ b)                                   # pre-smooth from x = 0
         x += lvl.P3 @ self._vcycle(l + 1, lvl.R3 @ (b - A @ x))
         x += w * (D @ (b - A @ x))                        # post-smooth
@@ -292,7 +313,8 @@ def _concat_csr(mats: list) -> tuple:
 
 def _galerkin_entries(fine: SystemMatrix, coarse: SystemMatrix, fine_up: np.ndarray, coarse_up: np.ndarray,
                       P) -> tuple:
-    """Entry lists of :func:`._fused.galerkin` for ``coarse = P^T fine P`` (``P kron I3``), both levels in
+    """Entry lists of :func:`implicit_cloth.kernels.pcg.galerkin` for ``coarse = P^T fine P`` (``P kron I3``),
+    both levels in
     diagonal + upper-block storage (``*_up``: positions of the upper blocks in each level's block list)."""
     P = sp.csr_array(P)
     P.sort_indices()
@@ -371,14 +393,46 @@ def _csr_from_blocks(sm: SystemMatrix, blocks: np.ndarray) -> sp.csr_array:
 FLOAT32_MIN_VERTICES: int | None = None
 
 
+class PackedHierarchy(NamedTuple):
+    """The packed hierarchy the compiled V-cycle reads (:func:`implicit_cloth.kernels.pcg.vcycle`), in its
+    argument order: every level's diagonal and upper blocks, the filter at the constrained vertices, the
+    inverted diagonal blocks, the transfers and the coarsest solve."""
+
+    dg: np.ndarray        #: (sum n_l, 3, 3) diagonal blocks of every level (float32 from FLOAT32_MIN_VERTICES)
+    uI: np.ndarray        #: row vertex of every stored upper block (i < j), all levels
+    uJ: np.ndarray        #: its column vertex
+    uv: np.ndarray        #: (sum u_l, 3, 3) the upper blocks
+    u6: np.ndarray        #: the fine upper blocks' six distinct numbers (used while all are symmetric)
+    use6: bool            #: whether u6 is used
+    voff: np.ndarray      #: level l's vertices are voff[l]:voff[l+1]
+    uoff: np.ndarray      #: level l's upper blocks are uoff[l]:uoff[l+1]
+    clist: np.ndarray     #: constrained fine vertices (fixed, then partial)
+    Sc: np.ndarray        #: their 3x3 filters
+    ws: np.ndarray        #: work array for the filtered vertices
+    dinv: np.ndarray      #: inverted diagonal blocks (the smoother), all levels
+    pptr: np.ndarray      #: prolongations P, CSR, concatenated (pointers, indices, values, offsets, nnz offsets)
+    pidx: np.ndarray
+    pval: np.ndarray
+    poff: np.ndarray
+    pnnz: np.ndarray
+    tptr: np.ndarray      #: restrictions P^T, CSR, concatenated
+    tidx: np.ndarray
+    tval: np.ndarray
+    toff: np.ndarray
+    C: np.ndarray         #: the coarsest solve: its upper Cholesky factor, or its dense inverse
+    upper: bool           #: True: C is the factor
+    omega: float          #: smoother damping
+
+
 class _FusedHierarchy:
-    """The hierarchy packed into flat arrays for the compiled kernels (:mod:`._fused`), and their drivers.
+    """The hierarchy packed into flat arrays for the compiled kernels (:mod:`implicit_cloth.kernels.pcg`), and
+    their drivers.
 
     Every level's matrix is symmetric, so the kernels store only its
     diagonal blocks and its upper blocks (``i < j``; the lower block
     ``(j, i)`` is the transpose), packed level after level, and multiply
     with one pass over each stored block that serves both ``(i, j)`` and
-    ``(j, i)`` (:func:`._fused._symmv`): half the matrix data read per pass
+    ``(j, i)`` (:func:`implicit_cloth.kernels.pcg._symmv`): half the matrix data read per pass
     and a flat loop, 2-5x faster than a CSR or block-row product on the test
     machine. The coarse levels' block values are refreshed by the same
     Galerkin maps as the numpy path and then packed; the fine level's are
@@ -391,7 +445,7 @@ class _FusedHierarchy:
     """
 
     def __init__(self, mg: Multigrid, prolongations: list) -> None:
-        from . import _fused  # noqa: F401  (imports numba now; the kernels compile, or load from cache, on first use)
+        from ..kernels import pcg as _fused  # noqa: F401  (imports numba now; the kernels compile, or load from cache, on first use)
 
         self.mg = mg
         systems = mg._systems()
@@ -436,12 +490,13 @@ class _FusedHierarchy:
             np.concatenate([np.zeros((len(filt.fixed), 3, 3)), filt.partial_S]).reshape(-1, 3, 3))
         self.ws = np.zeros(3 * len(self.clist))
 
-    def setup(self, filt: Filter) -> None:
+    def setup(self, filt: Filter) -> np.ndarray:
+        """Pack the levels' current values; returns the coarsest matrix (dense) to factorise."""
         mg, fine = self.mg, self.mg.fine
         L = len(mg.levels)
         self.filt = filt
         self._filter_arrays(filt)
-        from . import _fused
+        from ..kernels import pcg as _fused
 
         flat = fine.blocks.reshape(-1)
         _fused.gather_blocks(flat, fine.diag_index, self.adg.reshape(-1))
@@ -459,7 +514,7 @@ class _FusedHierarchy:
             self.dinv[c] = inv3(Sc @ self.adg[c] @ Sc + (eye - Sc))
         if L == 0:
             mg._A = [_csr_from_blocks(fine, _filtered_blocks(fine, fine.blocks, filt))]
-            return
+            return mg._A[-1].toarray()
         for l in range(1, L + 1):
             v0, v1, v2 = self.voff[l - 1], self.voff[l], self.voff[l + 1]
             u0, u1, u2 = self.uoff[l - 1], self.uoff[l], self.uoff[l + 1]
@@ -480,6 +535,7 @@ class _FusedHierarchy:
             if l < L:
                 _fused.inv3(self.dg[v1:v2].reshape(-1), self.dinv[v1:v2].reshape(-1))
         mg._A = [None] * (L + 1)
+        return self.coarse_dense()
 
     def _touched(self, filt: Filter):
         """Fine blocks touching a constrained vertex, the Galerkin map's columns for them, and for each such
@@ -519,35 +575,41 @@ class _FusedHierarchy:
             c, lower = ch
             return (np.ascontiguousarray(c.T) if lower else c), True
         m = 3 * int(self.voff[-1] - self.voff[-2])
-        return np.ascontiguousarray(self.mg._vcycle(len(self.mg.levels), np.eye(m))), False
+        return np.ascontiguousarray(self.mg.coarse_solve(np.eye(m))), False
 
-    def _hier(self):
+    def _hier(self) -> PackedHierarchy:
         C, upper = self._coarse()
-        return (self.dg, self.uI, self.uJ, self.uv, self.au6, self.use6, self.voff, self.uoff, self.clist, self.Sc,
-                self.ws, self.dinv,
-                self.pptr, self.pidx, self.pval, self.poff, self.pnnz, self.tptr, self.tidx, self.tval, self.toff,
-                C, upper, self.mg.omega)
+        return PackedHierarchy(self.dg, self.uI, self.uJ, self.uv, self.au6, self.use6, self.voff, self.uoff,
+                               self.clist, self.Sc, self.ws, self.dinv, self.pptr, self.pidx, self.pval, self.poff,
+                               self.pnnz, self.tptr, self.tidx, self.tval, self.toff, C, upper, self.mg.omega)
 
     def apply(self, r: np.ndarray) -> np.ndarray:
-        from . import _fused
+        from ..kernels import pcg as _fused
 
         r = np.ascontiguousarray(r, dtype=float)
         out = np.empty_like(r)
-        _fused.vcycle(r, out, *self._hier(), self.wb, self.wx, self.wr)  # type: ignore[call-arg]  # numba Dispatcher
+        _fused.vcycle(r, out, *self._hier(), self.wb, self.wx, self.wr)
         return out
 
     def pcg(self, A, b, z, filt, tol=1e-3, max_iterations=1000, guess=None, mass=None, rule="estimate",
             min_delay=4, delay_fraction=0.25):
-        from . import _fused
+        from ..kernels import pcg as _fused
 
         fine = self.mg.fine
-        if A is not fine.csr or fine.version != self.version or filt is not self.filt:
-            return None
+        if A is not fine.csr:
+            raise BackendMismatch("fused_pcg: A is not the fine system's own matrix (the compiled CG multiplies "
+                                  "by the blocks packed at setup)")
+        if fine.version != self.version:
+            raise BackendMismatch("fused_pcg: the system was assembled again after the preconditioner's setup "
+                                  "(call setup after assembly)")
+        if filt is not self.filt:
+            raise BackendMismatch("fused_pcg: the filter is not the one of the last setup (call setup with it)")
         f = lambda a: np.ascontiguousarray(a, dtype=float).reshape(-1)  # noqa: E731
         h = self._hier()
         dv, it, res, conv, err = _fused.pcg(
-            self.adg, self.auI, self.auJ, self.auv, self.au6, self.use6, h[0], h[1], h[2], h[3], h[6], h[7], h[8],
-            h[9], *h[11:],
+            self.adg, self.auI, self.auJ, self.auv, self.au6, self.use6, h.dg, h.uI, h.uJ, h.uv, h.voff, h.uoff,
+            h.clist, h.Sc, h.dinv, h.pptr, h.pidx, h.pval, h.poff, h.pnnz, h.tptr, h.tidx, h.tval, h.toff,
+            h.C, h.upper, h.omega,
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
             f(mass) if mass is not None else np.zeros(0), mass is not None, float(tol), int(max_iterations),
             rule == "bound", int(min_delay), float(delay_fraction))

@@ -26,11 +26,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..kernels import estimate
 from .blocks import block_diagonal_operator, inv3
 
-#: Factor on the extrapolated error of the current iterate, from measurements (see :func:`filtered_pcg`,
-#: Notes, and ``benchmarks/stopping_rule.py``). Keep equal to the literal in ``_fused.error_estimate``.
-ESTIMATE_SAFETY = 2.0
+#: Factor on the extrapolated error of the current iterate (defined with the estimate itself, in
+#: :mod:`implicit_cloth.kernels.estimate`).
+ESTIMATE_SAFETY = estimate.ESTIMATE_SAFETY
 
 
 @dataclass
@@ -131,7 +132,7 @@ class BlockJacobi:
 def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: float = 1e-3,
                  max_iterations: int = 1000, guess: np.ndarray | None = None, mass: np.ndarray | None = None,
                  rule: str = "estimate", min_delay: int = 4,
-                 delay_fraction: float = 0.25) -> tuple[np.ndarray, SolveResult]:
+                 delay_fraction: float = 0.25, compiled: bool | None = None) -> tuple[np.ndarray, SolveResult]:
     """Solve ``A dv = b`` with the constraints ``(I - S) dv = (I - S) z`` (BW98 §5.3).
 
     Parameters
@@ -155,6 +156,11 @@ def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: fl
         Initial guess of the free part (warm start); its constrained part is ignored.
     mass : (3N,) array, optional
         Lumped masses per coordinate, for the guaranteed bound (needs ``A >= M``).
+    compiled : bool, optional
+        Run the whole iteration compiled (``precond.fused_pcg``, the numba back-end, which takes
+        only the system the preconditioner was set up on, else a ``BackendMismatch``) or the numpy
+        loop with ``precond.apply`` (``False``: e.g. to solve another matrix with a compiled
+        V-cycle). Default: the preconditioner's back-end decides (``precond.compiled``).
     rule : {"estimate", "bound"}
         ``"estimate"``: stop when the error estimate (or the bound) is below
         ``tol``; ``"bound"``: only when the guaranteed bound is (for weak
@@ -214,12 +220,11 @@ def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: fl
     """
     if min_delay < 2:
         raise ValueError(f"min_delay: must be an integer >= 2, got {min_delay!r}")
-    fused = getattr(precond, "fused_pcg", None)
-    if fused is not None:                            # the same iteration compiled (numba), when it applies
-        out = fused(A, b, z, filt, tol=tol, max_iterations=max_iterations, guess=guess, mass=mass, rule=rule,
-                    min_delay=min_delay, delay_fraction=delay_fraction)
-        if out is not None:
-            return out
+    if compiled is None:
+        compiled = bool(getattr(precond, "compiled", False))
+    if compiled:                                     # the same iteration compiled (the numba back-end)
+        return precond.fused_pcg(A, b, z, filt, tol=tol, max_iterations=max_iterations, guess=guess, mass=mass,
+                                 rule=rule, min_delay=min_delay, delay_fraction=delay_fraction)
     zc = z - filt.apply(z.copy())                    # (I - S) z: the constrained part
     dv = zc.copy()
     r = filt.apply(b - A @ dv)
@@ -295,25 +300,4 @@ def current_error_estimate(ad: np.ndarray, pw: np.ndarray, it: int, dd: float, d
         convergence (rate ``q >= 1``, stagnation) the conservative delayed estimate,
         the error of the iterate ``d`` iterations back.
     """
-    k = it
-    h = max(1, d // 2)
-    # delayed estimate (Strakos & Tichy): |e_{k-d}|^2 - |e_k|^2 with |e_j|_A^2 ~ sum_{i=j}^{k-1} ad_i
-    e2 = 0.0
-    ea_next = 0.0
-    for j in range(k - 1, k - d - 1, -1):
-        ea = ea_next + ad[j]
-        e2 += pw[j] * (ea + ea_next)
-        ea_next = ea
-    # convergence rate per iteration: the slower of the whole window's and its last h iterations'
-    q = max((ad[k - 1] / ad[k - d]) ** (1.0 / (d - 1)), (ad[k - 1] / ad[k - 1 - h]) ** (1.0 / h))
-    if not q < 1.0:
-        return float(np.sqrt(e2 / max(dd, 1e-300)))
-    recent = 0.0
-    pmax = 0.0
-    for j in range(k - h, k):
-        recent += ad[j]
-        pmax = max(pmax, pw[j])
-    qh = q ** h
-    tail = recent * qh / (1.0 - qh)                     # |e_k|_A^2 = sum_{j>=k} ad_j, geometric
-    e2_now = pmax * tail * (1.0 + q) / (1.0 - q)          # |e_k|^2 = sum_{j>=k} pw_j (|e_j|_A^2 + |e_j+1|_A^2)
-    return float(ESTIMATE_SAFETY * np.sqrt(e2_now / max(dd, 1e-300)))
+    return float(estimate.error_estimate(ad, pw, it, dd, d))

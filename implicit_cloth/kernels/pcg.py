@@ -40,6 +40,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from . import estimate
+
 
 @njit(cache=True, inline="always")
 def _filt3(Sc, c, x0, x1, x2):
@@ -487,29 +489,8 @@ def galerkin(sd, su, od, ou, d_ptr, d_dst, d_w, u_ptr, u_dst, u_w):
                         od[t + 3 * a + b] += w * (su[o + 3 * a + b] + su[o + 3 * b + a])
 
 
-@njit(cache=True)
-def error_estimate(ad, pw, it, dd, d):
-    """:func:`implicit_cloth.solvers.pcg.current_error_estimate`, compiled: the same loops in the same order."""
-    k = it
-    h = max(1, d // 2)
-    e2 = 0.0
-    ea_next = 0.0
-    for j in range(k - 1, k - d - 1, -1):
-        ea = ea_next + ad[j]
-        e2 += pw[j] * (ea + ea_next)
-        ea_next = ea
-    q = max((ad[k - 1] / ad[k - d]) ** (1.0 / (d - 1)), (ad[k - 1] / ad[k - 1 - h]) ** (1.0 / h))
-    if not q < 1.0:
-        return np.sqrt(e2 / max(dd, 1e-300))
-    recent = 0.0
-    pmax = 0.0
-    for j in range(k - h, k):
-        recent += ad[j]
-        pmax = max(pmax, pw[j])
-    qh = q ** h
-    tail = recent * qh / (1.0 - qh)
-    e2_now = pmax * tail * (1.0 + q) / (1.0 - q)
-    return 2.0 * np.sqrt(e2_now / max(dd, 1e-300))             # pcg.ESTIMATE_SAFETY (a test checks they agree)
+#: :func:`implicit_cloth.solvers.pcg.current_error_estimate`, compiled: the one definition in :mod:`.estimate`
+error_estimate = njit(cache=True)(estimate.error_estimate)
 
 
 @njit(cache=True)
