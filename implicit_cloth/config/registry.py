@@ -79,6 +79,10 @@ class Registry:
         self._entries[name] = entry
         return entry
 
+    def unregister(self, name: str) -> None:
+        """Remove a component (a plug-in unloaded, a test's temporary entry)."""
+        del self._entries[name]
+
     def _load(self) -> None:
         if not self._loaded:
             self._loaded = True
