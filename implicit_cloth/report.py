@@ -184,8 +184,9 @@ class RunReport(Record):
     NESTED: ClassVar[dict[str, type[Record]]] = {
         "solver": SolverReport, "divergence_bound": DivergenceBound, "frames": Frames,
         "adaptive": AdaptiveReport, "strain_limit": StrainLimitReport, "collision": CollisionReport}
-    OPTIONAL_KEYS: ClassVar[frozenset[str]] = frozenset({"collision", "scene", "schema_version"})
+    OPTIONAL_KEYS: ClassVar[frozenset[str]] = frozenset({"collision", "warnings", "scene", "schema_version"})
 
+    #: "ok" or "diverged" (a status for runs that finished with warnings may follow)
     status: str
     reason: str
     integrator: str
@@ -207,6 +208,8 @@ class RunReport(Record):
     strain_limit: StrainLimitReport | None
     #: scenes with obstacles only
     collision: CollisionReport | None = None
+    #: one line per warning raised during the run (batch cases record them; None: not recorded)
+    warnings: list[str] | None = None
     #: the normalised scene (report.json only)
     scene: dict[str, Any] | None = None
     #: the layout's version (report.json only; None: a report from memory, or a file from before versions)

@@ -61,9 +61,10 @@ def test_a_missing_key_is_an_error_naming_it_and_unknown_keys_are_kept():
         RunReport.from_dict(broken)
     with pytest.raises(ReportError, match=r"^report\.frames: must be a table, got 3$"):
         RunReport.from_dict({**d, "frames": 3})
-    extended = {**d, "warnings": ["w"], "status": "warning"}
+    extended = {**d, "warnings": ["w"], "status": "warning", "case_id": "abc"}
     r = RunReport.from_dict(extended)
-    assert r.extra == {"warnings": ["w"]} and r.status == "warning" and r.to_dict() == extended
+    assert r.warnings == ["w"] and r.status == "warning"
+    assert r.extra == {"case_id": "abc"} and r.to_dict() == extended
 
 
 def test_written_run_loads_back_and_its_scene_reproduces_the_run_bit_for_bit(tmp_path):

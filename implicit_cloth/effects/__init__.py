@@ -6,7 +6,8 @@ terms), so integrators and the assembly know nothing about what the force is:
 ``force(x, v, t, out)``
     Add the force, N, on every vertex to ``out`` (N, 3).
 ``potential(x)``
-    Potential energy, J (0 for dissipative effects).
+    Potential energy, J (0 for dissipative effects); ``conservative`` says which
+    effects have one (the run report lists their energies).
 ``pairs()``
     (P, 2) vertex pairs whose 3x3 Jacobian blocks couple (for the sparsity pattern).
 ``bind(system)``
@@ -14,11 +15,15 @@ terms), so integrators and the assembly know nothing about what the force is:
 ``linearize(x, v, t, c_x, c_v, w, system, kw, f)``
     Add ``-(c_v dF/dv + c_x dF/dx)`` to ``system.blocks``, ``(dF/dx) w`` to ``kw``
     and the force to ``f`` (so that an implicit step evaluates each effect once).
+
+A new entry of the ``[effects]`` table is one module with ``validate(path, value)``
+and ``build(model, value, effects)`` (``effects``: the whole validated table) plus
+its registration below; :func:`build_effects` builds the declared ones in
+registration order.
 """
 
 from __future__ import annotations
 
-import importlib
 from typing import Any, Protocol
 
 import numpy as np
@@ -26,24 +31,22 @@ import numpy as np
 from ..config.registry import EFFECTS
 
 # The [effects] table, in evaluation order. Each entry's module checks its own value (``validate(path,
-# value)``) and is imported only when a scene declares it; ``requires`` names the entry it acts through
-# and why (wind has no force of its own: drag acts relative to it).
-EFFECTS.register("gravity", module="implicit_cloth.effects.gravity")
-EFFECTS.register("drag", module="implicit_cloth.effects.drag")
-EFFECTS.register("wind", module="implicit_cloth.effects.wind", requires=(
+# value)``), builds its force term (``build``, when ``builds``) and is imported only when a scene declares
+# it; ``requires`` names the entry it acts through and why (wind has no force of its own: drag acts
+# relative to it, and builds it).
+EFFECTS.register("gravity", module="implicit_cloth.effects.gravity", builds=True)
+EFFECTS.register("drag", module="implicit_cloth.effects.drag", builds=True)
+EFFECTS.register("wind", module="implicit_cloth.effects.wind", builds=False, requires=(
     "drag", "wind acts through air drag; set effects.drag, the drag coefficient in N*s/m^3, for effects.wind "
             "to have an effect"))
-
-#: effect name -> (module, builder function); modules are imported on demand only.
-_REGISTRY: dict[str, tuple[str, str]] = {
-    "gravity": ("implicit_cloth.effects.gravity", "build"),
-    "drag": ("implicit_cloth.effects.drag", "build"),
-    "springs": ("implicit_cloth.effects.springs", "build"),
-}
+#: the springs come from the [cloth.springs] tables, not [effects]; built after the [effects] entries
+SPRINGS_MODULE = "implicit_cloth.effects.springs"
 
 
 class Effect(Protocol):
     name: str
+    #: whether :meth:`potential` is an energy the run reports (gravity, springs) or 0 (drag)
+    conservative: bool
 
     def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None: ...
 
@@ -58,17 +61,14 @@ class Effect(Protocol):
 
 
 def build_effects(model: Any, effects: dict[str, Any], springs: dict[str, Any]) -> list[Effect]:
-    """Instantiate only the declared effects (importing only their modules)."""
+    """Instantiate only the declared effects (importing only their modules), in evaluation order."""
     out: list[Effect] = []
-    if "gravity" in effects:
-        out.append(_load("gravity")(model, effects["gravity"]))
-    if "drag" in effects:
-        out.append(_load("drag")(model, effects["drag"], effects.get("wind")))
+    for name in EFFECTS.names():
+        entry = EFFECTS[name]
+        if name in effects and entry.meta.get("builds"):
+            out.append(entry.load("build")(model, effects[name], effects))
     if springs:
-        out.append(_load("springs")(model, springs))
+        from .springs import build
+
+        out.append(build(model, springs))
     return out
-
-
-def _load(name: str):
-    module, fn = _REGISTRY[name]
-    return getattr(importlib.import_module(module), fn)

@@ -24,6 +24,7 @@ class Drag:
     """Linear drag with coefficient ``c`` (N*s/m^3), against an optional wind field."""
 
     name = "drag"
+    conservative = False
 
     def __init__(self, areas: np.ndarray, c: float, wind: Any = None) -> None:
         self.c = float(c)
@@ -49,7 +50,9 @@ class Drag:
         system.add_diagonal(c_v * self._cA[:, 0])
 
 
-def build(model: Any, c: float, wind: dict | None) -> Drag:
+def build(model: Any, c: float, effects: dict[str, Any] | None = None) -> Drag:
+    """The ``effects.drag`` term, relative to ``effects.wind`` when the table has one."""
+    wind = (effects or {}).get("wind")
     field = None
     if wind is not None:
         from .wind import ConstantWind

@@ -18,6 +18,7 @@ class Gravity:
     """Uniform gravitational acceleration ``g`` (m/s^2) acting on every vertex mass."""
 
     name = "gravity"
+    conservative = True
 
     def __init__(self, masses: np.ndarray, g) -> None:
         self.g = np.asarray(g, dtype=float)
@@ -39,5 +40,6 @@ class Gravity:
         f += self._mg  # constant force: no Jacobian
 
 
-def build(model: Any, g) -> Gravity:
+def build(model: Any, g: Any, effects: Any = None) -> Gravity:
+    """The ``effects.gravity`` term (``effects``: the whole [effects] table, unused)."""
     return Gravity(model.masses, g)

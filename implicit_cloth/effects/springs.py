@@ -55,6 +55,7 @@ class Springs:
     """
 
     name = "springs"
+    conservative = True
 
     def __init__(self, n: int, pairs: np.ndarray, stiffness: np.ndarray, damping: np.ndarray,
                  rest_length: np.ndarray, kinds: dict[str, slice]) -> None:
