@@ -17,8 +17,9 @@ Exit codes
     run's health, e.g. energy created beyond the balance, is one line of the summary and one
     ``implicit-cloth: warning: ...`` line on stderr).
 1
-    The results could not be written (an operating-system error after the run,
-    e.g. a full disk). The two files are written together: a failure leaves
+    The results could not be produced or written: out of memory (one line
+    ``implicit-cloth: error: out of memory ...``) or an operating-system error
+    after the run (e.g. a full disk). The two files are written together: a failure leaves
     a previous ``trajectory.npz`` and ``report.json`` as they were and no
     temporary file behind.
 2
@@ -33,6 +34,10 @@ Exit codes
 4
     With ``run --strict``: the run finished with ``status`` ``"warning"`` (its
     results are written as for 0).
+130
+    Interrupted (Ctrl-C, SIGINT): ``implicit-cloth: interrupted`` on stderr,
+    nothing written (a previous pair of outputs stays as it was). The
+    interrupt is taken between steps, also on the compiled (numba) path.
 
 Other subcommands: ``bench`` (a benchmark of benchmarks/), ``batch`` (a
 parameter sweep, see :mod:`implicit_cloth.batch`), ``export`` (meshes of a
@@ -44,11 +49,12 @@ sweep's summary); each follows the same exit codes, one-line errors and
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import traceback
 import warnings
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NoReturn, Sequence
 
 from . import __version__
 from .errors import DivergenceError, InputError
@@ -65,18 +71,28 @@ EXIT_WRITE_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
 EXIT_WARNING = 4
+EXIT_INTERRUPTED = 130
 
 
 # --------------------------------------------------------------------------- parser
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``implicit-cloth: error: --dt: invalid float value: 'abc' (see ...)``
+    instead of the usage text and the error (exit code 2 either way)."""
+
+    def error(self, message: str) -> NoReturn:
+        message = re.sub(r"^argument ([^:]+): ", r"\1: ", " ".join(message.split()))
+        self.exit(EXIT_BAD_INPUT, f"{PROG}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (one subparser per subcommand)."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog=PROG,
         description="Mass-spring cloth simulation with Baraff-Witkin implicit integration.",
         epilog="Exit codes: 0 ok, 1 results could not be written, 2 bad input, 3 diverged.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
 
     run = sub.add_parser(
         "run", help="simulate a scene and write trajectory.npz and report.json",
@@ -152,21 +168,30 @@ def build_parser() -> argparse.ArgumentParser:
 
     render = sub.add_parser(
         "render", help="draw a run: PNG of chosen frames and an animated GIF (or MP4)",
-        description="Draw RUN_DIR's cloth (and obstacles) headless with matplotlib: frames.png with the "
-                    "chosen frames side by side and movie.gif (Pillow) or movie.mp4 (ffmpeg). Needs the "
-                    "render extra.",
+        description="Draw RUN_DIR's cloth and obstacles headless: frames.png with the chosen frames side by "
+                    "side and movie.gif or movie.mp4. With pyvista (the render extra) a depth-buffered "
+                    "picture, the cloth coloured by --color; without it matplotlib's painter's algorithm, "
+                    "which is wrong at contacts.",
     )
     render.add_argument("run_dir", metavar="RUN_DIR", help="a run's output directory (run, or a batch case)")
     render.add_argument("--out", metavar="DIR", default=None, help="output directory (default RUN_DIR/render)")
     render.add_argument("--frames", metavar="K", type=int, nargs="+", default=None,
                         help="frames of the PNG (negative from the end; default first, middle, last)")
-    render.add_argument("--movie", default="gif", help="gif | mp4 | none (default gif; mp4 needs ffmpeg)")
+    render.add_argument("--movie", default="gif", help="gif | mp4 | none (default gif)")
     render.add_argument("--fps", type=float, default=15.0, help="movie frames per second (default 15)")
     render.add_argument("--max-frames", type=int, default=120, dest="max_frames",
                         help="at most this many movie frames, evenly spaced (default 120)")
-    render.add_argument("--dpi", type=int, default=80, help="resolution (default 80)")
+    render.add_argument("--color", default="solid", help="solid | piece | strain | speed (default solid)")
+    render.add_argument("--backend", default="auto", help="auto | pyvista | matplotlib (default auto: pyvista "
+                                                          "if installed)")
+    render.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), default=[640, 480],
+                        help="picture size in pixels (pyvista; default 640 480)")
+    render.add_argument("--zoom", type=float, default=1.0, help="camera this many times closer (default 1)")
+    render.add_argument("--dpi", type=int, default=80, help="resolution (matplotlib; default 80)")
     render.add_argument("--elev", type=float, default=20.0, help="camera elevation, degrees (default 20)")
     render.add_argument("--azim", type=float, default=-60.0, help="camera azimuth, degrees (default -60)")
+    render.add_argument("--no-progress", action="store_true",
+                        help="no progress bar (it is only shown when stderr is a terminal)")
     render.add_argument("--debug", action="store_true", help="print tracebacks of errors")
     render.set_defaults(handler=cmd_render)
 
@@ -477,7 +502,9 @@ def cmd_render(args: argparse.Namespace) -> int:
         from .render import render_run
 
         return render_run(args.run_dir, out=args.out, frames=args.frames, movie=args.movie, fps=args.fps,
-                          max_movie_frames=args.max_frames, dpi=args.dpi, elev=args.elev, azim=args.azim)
+                          max_movie_frames=args.max_frames, dpi=args.dpi, elev=args.elev, azim=args.azim,
+                          backend=args.backend, color=args.color, pixels=tuple(args.size), zoom=args.zoom,
+                          progress=(not args.no_progress) and sys.stderr.isatty())
     return _plots(args, make)
 
 
@@ -503,7 +530,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.handler(args))
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except SystemError as exc:      # a second Ctrl-C inside compiled code (see implicit_cloth.interrupt)
+        if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
+            print(f"{PROG}: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        raise
+    except MemoryError:
+        _error(f"out of memory while running {args.command} (a smaller cloth.resolution, fewer kept frames "
+               "or a shorter run needs less)", bool(getattr(args, "debug", False)))
+        return EXIT_WRITE_FAILED
 
 
 if __name__ == "__main__":

@@ -187,8 +187,10 @@ def from_mesh(path: str, scale: float = 1.0, translation=(0.0, 0.0, 0.0),
               kinds=("structural", "bend")) -> ClothGeometry:
     """A cloth from a triangle mesh file (OBJ, PLY, STL, glTF, OFF; see :data:`MESH_FORMATS`), read with trimesh.
 
-    Vertices are used as they are in the file (not merged), multiplied by
-    ``scale`` and shifted by ``translation`` (m).
+    Vertices are used as they are in the file (not merged, not dropped, not split at UV seams: vertex ``k``
+    of the file is vertex ``k`` of the cloth, and pins index the file's vertices; OBJ files are read by
+    :func:`implicit_cloth.objfile.read_obj` for that), multiplied by ``scale`` and shifted by ``translation``
+    (m).
 
     Raises
     ------
@@ -220,16 +222,12 @@ def from_mesh(path: str, scale: float = 1.0, translation=(0.0, 0.0, 0.0),
     if empty:
         raise SceneError(f"cloth.mesh: file is empty, got {path!r}")
 
-    import trimesh  # deferred: only mesh cloths need it
+    if ext == ".obj":     # read here: trimesh would drop unused vertices and split UV seams (renumbering)
+        from .objfile import read_obj
 
-    try:
-        loaded = trimesh.load(path, file_type=ext[1:], force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for bad files
-        hint = "; a face probably refers to a vertex that is not in the file" if isinstance(exc, IndexError) else ""
-        raise SceneError(f"cloth.mesh: cannot read mesh file {path!r} as {ext[1:].upper()} "
-                         f"({type(exc).__name__}: {' '.join(str(exc).split())}{hint})") from None
-    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))))
-    verts = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
+        verts, faces = read_obj(path)
+    else:
+        verts, faces = _load_with_trimesh(path, ext)
     if faces.size == 0:
         raise SceneError(f"cloth.mesh: mesh has no triangles, got {path!r}")
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
@@ -254,6 +252,20 @@ def from_mesh(path: str, scale: float = 1.0, translation=(0.0, 0.0, 0.0),
                          f"coordinate {np.abs(verts).max():g}), got {scale}")
     degenerate = check_mesh(pos, faces, path, raw_positions=verts)
     return ClothGeometry(pos, faces, mesh_springs(faces, kinds, skip=degenerate), grid_shape=None)
+
+
+def _load_with_trimesh(path: str, ext: str) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh  # deferred: only mesh cloths need it
+
+    try:
+        loaded = trimesh.load(path, file_type=ext[1:], force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for bad files
+        hint = "; a face probably refers to a vertex that is not in the file" if isinstance(exc, IndexError) else ""
+        raise SceneError(f"cloth.mesh: cannot read mesh file {path!r} as {ext[1:].upper()} "
+                         f"({type(exc).__name__}: {' '.join(str(exc).split())}{hint})") from None
+    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))))
+    verts = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
+    return verts, faces
 
 
 def _first(indices: np.ndarray, k: int = 5) -> str:

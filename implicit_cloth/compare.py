@@ -15,11 +15,12 @@ import numpy as np
 
 from .batch import HEALTH_COLUMNS, read_summary
 from .errors import InputError, show
-from .files import atomic_write
+from .export.staging import write_bytes
 
 #: Figures plotted by default (those with at least one value).
 DEFAULT_METRICS: tuple[str, ...] = ("energy_drift_rel", "max_strain", "mean_iterations", "wall_s")
 UNITS = {"energy_drift": "J", "wall_s": "s", "max_penetration": "m"}
+MARKERS = ("o", "s", "^", "D", "v", "P", "*", "X")
 
 
 def _numeric(values: Sequence[Any]) -> bool:
@@ -28,6 +29,16 @@ def _numeric(values: Sequence[Any]) -> bool:
 
 def _label(v: Any) -> str:
     return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+def _safe(key: str) -> str:
+    return key.replace(".", "_").replace("[", "_").replace("]", "")
+
+
+def _sort_key(values: tuple[Any, ...]) -> tuple[tuple[int, Any], ...]:
+    """Numbers in numeric order (1000 < 5000 < 20000), before strings in their order; None last."""
+    return tuple((0, float(v)) if isinstance(v, numbers.Real) and not isinstance(v, bool) else
+                 (2, "") if v is None else (1, str(v)) for v in values)
 
 
 def _choose(out: str | os.PathLike[str], keys: list[str], rows: list[dict[str, Any]], x: str | None,
@@ -75,13 +86,16 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
     metrics : list of str, optional
         Columns to plot (default those of :data:`DEFAULT_METRICS` that have values).
     plots : path, optional
-        Where to write ``<metric>_vs_<x>.png`` (default ``DIR/compare``).
+        Where to write the plots (default ``DIR/compare``): into ``by_<key>/`` for ``--by key`` (dots as
+        underscores), ``per_case/`` without, so that plots by different keys do not replace each other.
 
     Returns
     -------
     list of Path
-        The PNG files written (atomically). Diverged cases are drawn as red
-        crosses at the figures of their partial run; failed and pending ones are left out.
+        The PNG files written (atomically). Every line is labelled with its whole combination of swept
+        values, legends in numeric order. A diverged case has no comparable figure (its run stopped, perhaps
+        before its first kept frame): it is marked by a red cross at the top of the plot at its x, never
+        plotted as a value; failed and pending ones are left out.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -91,15 +105,17 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
     rows = summary.finished()
     x, metrics = _choose(out, keys, rows, x, by, metrics)
 
-    # one line per combination of the keys other than x (so that a line never mixes cases);
-    # with --by, lines share the colour (and the legend entry) of their --by value
+    # one line per combination of the keys other than x (so that a line never mixes cases), each labelled with
+    # its whole combination; with --by, lines share the colour of their --by value and differ in marker
     group_keys = ([by] if by is not None else []) + [k for k in keys if k not in (x, by)]
-    groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
+    groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
     for r in rows:
-        groups.setdefault(tuple(_label(r[k]) for k in group_keys), []).append(r)
-    colours = {v: n for n, v in enumerate(dict.fromkeys(g[0] for g in sorted(groups)))} if by else {}
+        groups.setdefault(tuple(r[k] for k in group_keys), []).append(r)
+    order = sorted(groups, key=_sort_key)
+    colours = {v: n for n, v in enumerate(dict.fromkeys(g[0] for g in order))} if by else {}
 
-    target = Path(plots) if plots is not None else Path(out) / "compare"
+    base = Path(plots) if plots is not None else Path(out) / "compare"
+    target = base / ("by_" + _safe(by) if by is not None else "per_case")
     target.mkdir(parents=True, exist_ok=True)
     xs_all = np.array([r[x] for r in rows], float)
     log_x = bool(np.all(xs_all > 0) and xs_all.max() / xs_all.min() > 10)
@@ -108,39 +124,28 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
         fig = Figure(figsize=(6.4, 4.4), dpi=100)
         FigureCanvasAgg(fig)
         ax = fig.add_subplot(1, 1, 1)
-        labelled: set[str] = set()
-        label: str | None
-        crosses: list[tuple[np.ndarray, np.ndarray]] = []
+        diverged_x: list[float] = []
         ok_values: list[float] = []
-        for g, (name, members) in enumerate(sorted(groups.items())):
-            pts = sorted((r[x], r[m], r["status"]) for r in members if r[m] is not None)
-            if not pts:
+        for g, name in enumerate(order):
+            members = groups[name]
+            diverged_x.extend(float(r[x]) for r in members if r["status"] == "diverged")
+            # finished cases (a warning is in the summary's health column), not diverged ones
+            pts = sorted((r[x], r[m]) for r in members if r["status"] in ("ok", "warning") and r[m] is not None)
+            label = ", ".join(f"{k.split('.')[-1]}={_label(v)}" for k, v in zip(group_keys, name)) or "all"
+            colour = f"C{colours[name[0]] % 10}" if by is not None else f"C{g % 10}"
+            marker = MARKERS[g % len(MARKERS)] if by is not None else "o"
+            if not pts:             # only diverged cases: the line's legend entry stays, without points
+                ax.plot([], [], marker=marker, linestyle="-", color=colour, label=label + " (diverged)")
                 continue
             px = np.array([p[0] for p in pts], float)
             py = np.array([p[1] for p in pts], float)
-            ok = np.array([p[2] in ("ok", "warning") for p in pts])   # finished (a warning is in the summary)
-            if by is not None:
-                colour = f"C{colours[name[0]] % 10}"
-                label = f"{by.split('.')[-1]}={name[0]}"
-                label = label if label not in labelled else None
-            else:
-                colour = f"C{g % 10}"
-                label = ", ".join(f"{k.split('.')[-1]}={v}" for k, v in zip(group_keys, name)) or "all"
-            if label is not None:
-                labelled.add(label)
-                if not np.any(ok):          # keep the legend entry even if this line has no ok point
-                    ax.plot([], [], "o-", color=colour, label=label)
-                    label = None
-            ax.plot(px[ok], py[ok], "o-", label=label, color=colour, alpha=0.8)
-            ok_values.extend(py[ok])
-            if np.any(~ok):
-                crosses.append((px[~ok], py[~ok]))
+            ax.plot(px, py, marker=marker, linestyle="-", label=label, color=colour, alpha=0.8)
+            ok_values.extend(py)
         if log_x:
             ax.set_xscale("log")
         ys = np.array(ok_values, float)
         ys = ys[np.isfinite(ys)]
-        clipped = False
-        if len(ys):      # the axis fits the ok cases; a diverged case beyond it is drawn at its edge
+        if len(ys):
             log_y = bool(np.all(ys > 0) and ys.max() / ys.min() > 100)
             if log_y:
                 ax.set_yscale("log")
@@ -149,15 +154,9 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
                 pad = 0.08 * (np.ptp(ys) or max(abs(ys.max()), 1e-12))
                 lo, hi = ys.min() - pad, ys.max() + pad
             ax.set_ylim(lo, hi)
-            for cx, cy in crosses:
-                clipped |= bool(np.any((cy < lo) | (cy > hi)))
-                ax.plot(cx, np.clip(cy, lo, hi), "x", color="red", markersize=9, mew=2, clip_on=False)
-        else:
-            for cx, cy in crosses:
-                ax.plot(cx, cy, "x", color="red", markersize=9, mew=2)
-        if crosses:
-            ax.plot([], [], "x", color="red", mew=2,
-                    label="diverged (partial run" + ("; beyond the axis: at its edge)" if clipped else ")"))
+        if diverged_x:      # a diverged case has no comparable figure (its run stopped): marked, not plotted
+            ax.plot(diverged_x, [1.0] * len(diverged_x), "x", color="red", markersize=9, mew=2, clip_on=False,
+                    transform=ax.get_xaxis_transform(), label="diverged (no value; marked at the top)")
         unit = UNITS.get(m)
         ax.set_xlabel(x)
         ax.set_ylabel(m + (f" ({unit})" if unit else ""))
@@ -167,6 +166,5 @@ def compare_sweep(out: str | os.PathLike[str], x: str | None = None, by: str | N
         fig.tight_layout()
         buf = io.BytesIO()
         fig.savefig(buf, format="png")
-        safe = x.replace(".", "_").replace("[", "_").replace("]", "")
-        written.append(atomic_write(target / f"{m}_vs_{safe}.png", lambda f, b=buf: f.write(b.getvalue())))  # type: ignore[misc]
+        written.append(write_bytes(target / f"{m}_vs_{_safe(x)}.png", buf.getvalue()))
     return written

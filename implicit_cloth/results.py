@@ -105,6 +105,51 @@ class Run:
         jj, ii = np.divmod(np.arange(nx * ny), nx)
         return np.stack([ii / (nx - 1), jj / (ny - 1)], axis=1)
 
+    def rest_positions(self) -> np.ndarray:
+        """The cloth's rest shape (N, 3), m: rebuilt from the stored scene (grid or mesh file), else frame 0."""
+        cloth = (self.scene or {}).get("cloth") or {}
+        try:
+            from . import cloth as builders
+
+            if cloth.get("kind") == "grid":
+                geo = builders.grid(cloth["size"], cloth["resolution"], cloth["center"], cloth["plane"])
+            elif cloth.get("kind") == "mesh":
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    geo = builders.from_mesh(cloth["mesh"], cloth["scale"], cloth["translation"])
+            else:
+                return self.positions[0]
+        except (SceneError, KeyError, TypeError, ValueError, OSError):
+            return self.positions[0]
+        return geo.positions if geo.positions.shape == self.positions.shape[1:] else self.positions[0]
+
+    def strain(self, frames: list[int]) -> np.ndarray:
+        """Per-vertex strain (F, N) at the frames: the largest ``|x_ij| / L_ij - 1`` of the triangle edges at
+        each vertex, ``L`` from :meth:`rest_positions` (stretch > 0, compression < 0 shown only where no edge
+        is stretched)."""
+        e = np.unique(np.sort(np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]],
+                                              self.faces[:, [2, 0]]]), axis=1), axis=0)
+        rest = np.linalg.norm(np.diff(self.rest_positions()[e], axis=1)[:, 0], axis=1)
+        rest = np.where(rest > 0, rest, np.inf)
+        out = np.full((len(frames), self.positions.shape[1]), -np.inf)
+        for k, f in enumerate(frames):
+            length = np.linalg.norm(np.diff(self.positions[f][e], axis=1)[:, 0], axis=1)
+            s = length / rest - 1.0
+            np.maximum.at(out[k], e[:, 0], s)
+            np.maximum.at(out[k], e[:, 1], s)
+        return np.where(np.isfinite(out), out, 0.0)
+
+    def speed(self, frames: list[int]) -> np.ndarray:
+        """Per-vertex speed (F, N) at the frames, m/s, by central differences of the kept frames (one-sided at
+        the ends; 0 for a single frame)."""
+        n = self.n_frames
+        out = np.zeros((len(frames), self.positions.shape[1]))
+        for k, f in enumerate(frames):
+            a, b = max(f - 1, 0), min(f + 1, n - 1)
+            if b > a and self.times[b] > self.times[a]:
+                out[k] = np.linalg.norm(self.positions[b] - self.positions[a], axis=1) / (self.times[b] - self.times[a])
+        return out
+
     def obstacles(self) -> list[Obstacle]:
         """The scene's obstacles as meshes (those that cannot be built are left out with an ObstacleWarning)."""
         if self._obstacles is None:
@@ -149,7 +194,7 @@ def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def obstacle_mesh(spec: Mapping[str, Any], k: int, extent: tuple[np.ndarray, float]) -> Obstacle | None:
     """The ``k``-th obstacle table of a stored (validated) scene as an :class:`Obstacle`; None with a warning.
 
-    ``extent`` = (centre, half-size) of the cloth's motion: a plane is drawn as a square 3 half-sizes wide
+    ``extent`` = (centre, half-size) of the cloth's motion: a plane is drawn as a square 4 half-sizes wide
     around the point of the plane nearest that centre (at the run's start).
     """
     from .collision.shapes import placement
@@ -160,11 +205,18 @@ def obstacle_mesh(spec: Mapping[str, Any], k: int, extent: tuple[np.ndarray, flo
                       ObstacleWarning, stacklevel=3)
         return None
     try:
-        motion = placement(dict(spec))
+        spec = dict(spec)
+        try:            # a stored scene's tables are validated already (and re-validating a keyframed one fails)
+            motion = placement(spec)
+        except KeyError:            # a hand-written table: validated (defaults filled in) as a scene's
+            from .obstacles import validate_obstacles
+
+            spec = validate_obstacles([spec])[0]
+            motion = placement(spec)
         if shape == "plane":
             c, half = extent
             q = motion.to_local(np.asarray(c, float)[None], 0.0)[0]
-            s = 3.0 * half
+            s = 2.0 * half
             verts = np.array([[q[0] + a * s, q[1] + b * s, 0.0] for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
             faces = np.array([[0, 1, 2], [0, 2, 3]], np.int64)
         else:
@@ -242,6 +294,9 @@ def read_run(run_dir: str | os.PathLike[str]) -> Run:
                          ) from None
     if positions.ndim != 3 or positions.shape[0] == 0 or len(times) != len(positions):
         raise InputError(f"RUN_DIR: {p} holds no frames (positions {positions.shape}), got {_fmt(str(run_dir))}")
+    from .files import check_pair
+
+    check_pair(run_dir)
     scene = _report_scene(run_dir)
     fps = run_fps(times, scene)
     if not math.isfinite(fps) or fps <= 0:

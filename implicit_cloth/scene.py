@@ -166,7 +166,7 @@ def _solver(d: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _pins(value: Any) -> list[dict[str, Any]]:
+def _pins(value: Any, n_vertices: int | None = None) -> list[dict[str, Any]]:
     if not is_list(value):
         raise fail("cloth.pins", "must be a list of vertex indices, corner names or tables", value)
     groups: list[dict[str, Any]] = []
@@ -198,7 +198,23 @@ def _pins(value: Any) -> list[dict[str, Any]]:
             loose_paths.append(path)
     if loose:
         groups.insert(0, {"vertices": loose, "velocity": [0.0, 0.0, 0.0], "paths": loose_paths})
+    if n_vertices is not None:
+        _pins_in_range(groups, n_vertices)
     return groups
+
+
+def _grid_vertices(cloth: Mapping[str, Any]) -> int | None:
+    """A grid cloth's vertex count; None for a mesh, whose count is known once its file is read (Model checks)."""
+    if cloth["kind"] != "grid":
+        return None
+    return int(cloth["resolution"][0] * cloth["resolution"][1])
+
+
+def _pins_in_range(groups: list[dict[str, Any]], n: int) -> None:
+    for g in groups:
+        for path, v in zip(g["paths"], g["vertices"]):
+            if isinstance(v, int) and v >= n:
+                raise fail(path, f"vertex index out of range (the cloth has {n} vertices)", v)
 
 
 def _springs(d: Any, material: str | None) -> dict[str, dict[str, float]]:
@@ -280,7 +296,7 @@ def _cloth(d: Any, base_dir: Path | None) -> dict[str, Any]:
     out["material"] = material
     out.update(_cloth_mass(d, material))
     out["velocity"] = vector("cloth.velocity", d.get("velocity", [0.0, 0.0, 0.0]), 3)
-    out["pins"] = _pins(d.get("pins", []))
+    out["pins"] = _pins(d.get("pins", []), _grid_vertices(out))
     if "springs" in d and d["springs"] is None:
         raise fail("cloth.springs", "must be a table", None)
     out["springs"] = _springs(d.get("springs"), material)

@@ -18,6 +18,7 @@ from .constraints import Constraints
 from .errors import DivergenceError, SolverWarning
 from .integrators import make_integrator
 from .files import save_npz
+from .interrupt import deferred_interrupt
 from .model import Model, State
 from .config.validate import number as _number
 from .scene import Scene, load_scene
@@ -320,8 +321,9 @@ class Simulator:
 
             bar = tqdm(total=rec.n_steps, unit="step", desc=f"{self.integrator_name} dt={self.dt:g}", leave=False)
         try:
-            with _blas_threads(self.blas_threads):
+            with _blas_threads(self.blas_threads), deferred_interrupt() as stop:   # Ctrl-C between steps only
                 for s in range(1, rec.n_steps + 1):
+                    stop.check()
                     ts = time.perf_counter()
                     try:
                         info = self._advance()

@@ -17,16 +17,16 @@ PKG = Path(__file__).resolve().parents[1] / "implicit_cloth"
 #: Bottom first. A module may import from its own layer (the graph must stay acyclic) or any lower one.
 #: A prefix ending in "*" stands for a package and everything in it.
 LAYERS: list[tuple[str, ...]] = [
-    ("errors", "materials", "kernels*"),
+    ("errors", "materials", "kernels*", "interrupt"),
     ("config*", "report", "backend"),
-    ("files", "geometry", "obstacles", "cloth"),
+    ("files", "geometry", "obstacles", "objfile", "cloth"),
     ("scene",),
     ("assembly", "solvers*", "effects*"),
     ("model", "constraints"),
     ("integrators*", "collision*", "diagnostics", "adaptive", "strain_limit"),
     ("simulator",),
     ("",),                                   # the package itself: the public API's facade
-    ("results", "export*", "render", "batch*", "compare"),
+    ("results", "export*", "renderer", "render", "batch*", "compare"),
     ("cli", "__main__"),
 ]
 

@@ -164,11 +164,12 @@ def test_invalid_base_scene_is_named(tmp_path):
 # --------------------------------------------------------------------------- running
 def test_diverged_and_failed_cases_are_recorded_and_the_sweep_goes_on(tmp_path):
     # symplectic Euler at dt = 0.02 with k = 5e4 N/m on 0.1 kg / 25 vertices is far beyond 2/omega;
-    # pin index 1000 passes scene validation but not the model (25 vertices): that case raises
+    # a total mass of 1e-320 kg passes scene validation but not the model (each of 25 vertices would get
+    # 4e-322 kg, whose inverse overflows): that case raises
     p = make(tmp_path, 'base = "base.toml"\n[sweep]\n"simulation.integrator" = ["backward_euler", '
                        '"symplectic_euler"]\n"simulation.dt" = [0.02]\n'
                        '"cloth.springs.structural.stiffness" = [5e4]\n'
-                       '[[cases]]\n"cloth.pins" = [1000]\n')
+                       '[[cases]]\n"cloth.mass" = 1e-320\n')
     sweep = load_sweep(p)
     out = tmp_path / "out"
     res = run_sweep(sweep, out, workers=1)
@@ -177,7 +178,7 @@ def test_diverged_and_failed_cases_are_recorded_and_the_sweep_goes_on(tmp_path):
     assert ok["status"] == "ok" and ok["reason"] == ""
     assert div["status"] == "diverged" and ("energy grew" in div["reason"] or "non-finite" in div["reason"])
     assert failed["status"] == "failed"
-    assert failed["reason"].startswith("SceneError: cloth.pins[0]: vertex index out of range")
+    assert failed["reason"].startswith("SceneError: cloth.mass: vertex 0 would get a mass")
     # the diverged case keeps its partial trajectory and its report
     d = out / sweep.cases[1].case_id
     report = json.loads((d / "report.json").read_text())

@@ -53,7 +53,8 @@ def test_obstacle_triangles_follow_issue_3_keys():
 
 
 def test_render_png_and_gif_open_in_pillow_and_show_obstacles(run_dir, tmp_path, capsys):
-    assert main(["render", str(run_dir), "--out", str(tmp_path / "plain"), "--movie", "none", "--dpi", "40"]) == 0
+    assert main(["render", str(run_dir), "--out", str(tmp_path / "plain"), "--movie", "none", "--dpi", "40",
+                 "--backend", "matplotlib"]) == 0
     # a hand-made report with issue 3's obstacles (and one shape render does not know)
     report = json.loads((run_dir / "report.json").read_text())
     report["scene"]["obstacles"] = [
@@ -63,9 +64,9 @@ def test_render_png_and_gif_open_in_pillow_and_show_obstacles(run_dir, tmp_path,
         {"shape": "torus", "radius": 1.0},
     ]
     (run_dir / "report.json").write_text(json.dumps(report))
-    assert main(["render", str(run_dir), "--dpi", "40", "--fps", "10"]) == 0
+    assert main(["render", str(run_dir), "--dpi", "40", "--fps", "10", "--backend", "matplotlib"]) == 0
     captured = capsys.readouterr()
-    assert captured.err.count("implicit-cloth: warning: obstacles: shape 'torus' is not drawn") == 1
+    assert captured.err.count("implicit-cloth: warning: obstacles[3]: shape 'torus' is not drawn") == 1
     assert captured.err.count("warning:") == 1          # the others were drawn
     png, gif = run_dir / "render" / "frames.png", run_dir / "render" / "movie.gif"
     assert str(png) in captured.out and str(gif) in captured.out
@@ -87,7 +88,8 @@ def test_render_png_and_gif_open_in_pillow_and_show_obstacles(run_dir, tmp_path,
 def test_render_api_frames_and_movie_limit(run_dir, tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        files = render_run(run_dir, out=tmp_path / "r", frames=[-1], max_movie_frames=3, dpi=30)
+        files = render_run(run_dir, out=tmp_path / "r", frames=[-1], max_movie_frames=3, dpi=30,
+                           backend="matplotlib")
     with PIL_Image.open(files[0]) as im:
         assert im.size == (4 * 30, 4 * 30)
     with PIL_Image.open(files[1]) as im:
@@ -124,7 +126,8 @@ def test_core_import_stays_light():
     import sys
 
     code = ("import sys, implicit_cloth, implicit_cloth.cli; "
-            "print(sorted(m for m in ('dask', 'distributed', 'matplotlib', 'PIL') if m in sys.modules))")
+            "print(sorted(m for m in ('dask', 'distributed', 'matplotlib', 'PIL', 'pyvista', 'vtk', 'pxr') "
+            "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 

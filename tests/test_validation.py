@@ -290,8 +290,10 @@ def _mesh_warnings(path, **cloth_keys):
     ("garbage.obj", b"hello world\n", "cloth.mesh: mesh has no triangles, got "),
     ("lines.obj", b"v 0 0 0\nv 1 0 0\nl 1 2\n", "cloth.mesh: mesh has no triangles, got "),
     ("oob.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 9\n",
-     "as OBJ (IndexError: index 8 is out of bounds for axis 0 with size 3; a face probably refers to a vertex "
-     "that is not in the file)"),
+     "cloth.mesh: face 1 = [0, 1, 8] refers to vertex 8, which is not in the file (it has 3 vertices, 0 to 2)"),
+    ("bad_v.obj", b"v 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "cloth.mesh: line 1: a vertex needs three numbers x y z"),
+    ("bad_f.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n", "cloth.mesh: line 4: face corner 'x' is not a vertex"),
+    ("zero.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "cloth.mesh: line 4: vertex index 0 (OBJ counts from 1)"),
     ("oob.off", b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n", "cloth.mesh: cannot read mesh file "),
     ("nan.obj", b"v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
      "cloth.mesh: vertex 0 has a non-finite coordinate [nan, 0.0, 0.0] (1 such vertices), got "),

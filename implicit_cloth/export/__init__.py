@@ -30,7 +30,7 @@ import numpy as np
 from ..errors import InputError
 from ..errors import show as _fmt
 from ..results import read_run
-from ._files import write_bytes
+from .staging import write_bytes
 
 FORMATS: tuple[str, ...] = ("usd", "pc2", "glb", "gltf", "obj", "ply")
 

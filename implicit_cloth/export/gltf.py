@@ -23,8 +23,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..results import Run, vertex_normals
-from ._files import write_bytes
 from .meshes import Z_UP_TO_Y_UP, y_up
+from .staging import write_bytes
 
 #: Most morph targets (frames - 1) written: the weights animation stores targets x frames numbers.
 MAX_MORPH_FRAMES = 1024

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..files import atomic_write
 from ..results import vertex_normals
-from ._files import write_bytes
+from .staging import write_bytes
 
 #: z-up (simulation) to y-up: (x, y, z) -> (x, z, -y), a rotation of -90 degrees about x.
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])

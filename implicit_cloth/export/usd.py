@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..results import Run, vertex_normals
-from ._files import staged_path
+from .staging import staged_path
 
 
 def _matrix(c: np.ndarray, R: np.ndarray):
