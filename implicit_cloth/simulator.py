@@ -127,7 +127,7 @@ class Simulator:
             self.model = Model(scene)
             self.integrator = make_integrator(self.integrator_name, self.model, scene.data["solver"])
         x = self.model.rest_positions.copy()
-        v = np.broadcast_to(np.asarray(scene.data["cloth"]["velocity"], dtype=float), x.shape).copy()
+        v = self.model.initial_velocity.copy()
         self.model.apply_pins(x, v, 0.0)
         self.state = State(x, v, 0.0)
         self._pins = Constraints.of_pins(self.model)
@@ -521,6 +521,8 @@ class _Recorder:
             "frame_rate": self.frame_rate,
             "effects": list(model.effect_names),
             "n_vertices": model.n,
+            **({"pieces": [{"vertices": list(vr), "faces": list(fr)} for vr, fr in zip(model.pieces, model.piece_faces)]}
+               if isinstance(sim.scene.data["cloth"], list) else {}),
             "n_springs": {k: sl.stop - sl.start for k, sl in model.springs.kinds.items()} if model.springs else {},
             "n_pinned": int(len(model.pinned)),
             "total_mass": model.total_mass,
