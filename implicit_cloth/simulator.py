@@ -520,7 +520,8 @@ class _Recorder:
             "frame_rate": self.frame_rate,
             "effects": list(model.effect_names),
             "n_vertices": model.n,
-            **({"pieces": [{"vertices": list(vr), "faces": list(fr)} for vr, fr in zip(model.pieces, model.piece_faces)]}
+            **({"pieces": [{"vertices": list(vr), "faces": list(fr)}
+                           for vr, fr in zip(model.pieces, model.piece_faces)]}
                if isinstance(sim.scene.data["cloth"], list) else {}),
             "n_springs": {k: sl.stop - sl.start for k, sl in model.springs.kinds.items()} if model.springs else {},
             "n_pinned": int(len(model.pinned)),
