@@ -61,7 +61,9 @@ CLOTH_KEYS = (
     "size", "resolution", "center", "plane", "mesh", "scale", "translation",
     "mass", "density", "pins", "material", "springs", "velocity",
 )
-COLLISION_KEYS = ("thickness", "restitution", "max_iterations")
+COLLISION_KEYS = ("thickness", "restitution", "max_iterations", "self_collision", "self_friction")
+#: Coulomb coefficient between layers of cloth when ``self_collision`` is on and ``self_friction`` is not given.
+SELF_FRICTION = 0.3
 COLLISION_DEFAULTS: dict[str, Any] = {"thickness": 0.005, "restitution": 0.0, "max_iterations": 8}
 
 #: Largest grid (nx * ny vertices, 4096 x 4096): beyond it the arrays alone need tens of GB.
@@ -351,7 +353,18 @@ def _collision(d: Any) -> dict[str, Any]:
         out["restitution"] = number("collision.restitution", d["restitution"], lo=0.0, hi=1.0)
     if "max_iterations" in d:
         out["max_iterations"] = integer("collision.max_iterations", d["max_iterations"], lo=1, hi=1000)
+    # self-collision's keys appear in the normalised table only when it is on (a scene without it is unchanged)
+    if boolean("collision.self_collision", d.get("self_collision", False)):
+        out["self_collision"] = True
+        out["self_friction"] = number("collision.self_friction", d.get("self_friction", SELF_FRICTION), lo=0.0)
+    elif "self_friction" in d:
+        raise SceneError("collision.self_friction: given, but collision.self_collision is not true")
     return out
+
+
+def self_collision(data: Mapping[str, Any]) -> bool:
+    """Whether the normalised scene asks for self-collision (``[collision] self_collision = true``)."""
+    return bool((data.get("collision") or {}).get("self_collision", False))
 
 
 def is_normalised(data: Any) -> bool:
@@ -454,9 +467,11 @@ class Scene:
             "effects": _effects(data.get("effects", {})),
             "obstacles": validate_obstacles(data.get("obstacles", []), self.base_dir),
         }
-        if "collision" in data and not out["obstacles"]:
-            raise SceneError("collision: given, but the scene has no [[obstacles]] to collide with")
-        out["collision"] = _collision(data.get("collision", {})) if out["obstacles"] else None
+        collision = _collision(data.get("collision", {})) if "collision" in data or out["obstacles"] else None
+        if collision is not None and not out["obstacles"] and not collision.get("self_collision"):
+            raise SceneError("collision: given, but the scene has no [[obstacles]] to collide with (and "
+                             "collision.self_collision is not true)")
+        out["collision"] = collision
         return out
 
     def replace(self, **sections: Mapping[str, Any]) -> "Scene":
@@ -476,6 +491,8 @@ class Scene:
         names += [k for k in SPRING_KINDS if any(k in c["springs"] for c in cloth_pieces(self.data))]
         if self.data["obstacles"]:
             names.append("collision")
+        if self_collision(self.data):
+            names.append("self_collision")
         return names
 
     def __repr__(self) -> str:

@@ -21,7 +21,7 @@ from .files import save_npz
 from .integrators import ImplicitIntegrator, make_integrator
 from .interrupt import deferred_interrupt
 from .model import Model, State
-from .scene import Scene, load_scene
+from .scene import Scene, load_scene, self_collision
 from .scene import check_run_length as _run_length
 
 
@@ -136,6 +136,12 @@ class Simulator:
             from .collision import Collider
 
             self.collider = Collider(scene.data["obstacles"], scene.data["collision"], self.model)
+        #: self-collision (``[collision] self_collision = true``), else None: its code is imported only then
+        self.self_collider: Any = None
+        if self_collision(scene.data):
+            from .selfcontact import SelfCollider
+
+            self.self_collider = SelfCollider(self.model, scene.data["collision"])
         self.last_step: Any = None
         self.blas_threads = blas_threads
         #: adaptive step control (``simulation.adaptive.enabled``), else None
@@ -146,7 +152,8 @@ class Simulator:
         self.measures = self.adaptive.measures if self.adaptive is not None else diagnostics.StepMeasures(self.model)
         self._energy_growth = float(sim["adaptive"]["max_energy_growth"])
         #: whether every step is checked (adaptive stepping, implicit methods, obstacles); else kept frames only
-        self._checks_steps = self.adaptive is not None or self.integrator.implicit or self.collider is not None
+        self._checks_steps = (self.adaptive is not None or self.integrator.implicit or self.collider is not None
+                               or self.self_collider is not None)
         #: the strain no step may leave: strain limiting's ``max_strain`` if declared, else adaptive's
         self.strain_bound = float(sim["strain_limit"]["max_strain"] if "strain_limit" in sim
                                   else sim["adaptive"]["max_strain"])
@@ -208,6 +215,14 @@ class Simulator:
 
     # ------------------------------------------------------------------ stepping
     def _substep(self, state: State, h: float, newton: int | None = None) -> tuple[State, Any]:
+        """One step of ``h`` from ``state`` (:meth:`_obstacle_substep`), then self-collision if declared (it
+        corrects the proposed state in place, after the obstacles, without moving the vertices they hold)."""
+        new, info = self._obstacle_substep(state, h, newton)
+        if self.self_collider is not None:
+            self.self_collider.step(state, new, h, self.collider)
+        return new, info
+
+    def _obstacle_substep(self, state: State, h: float, newton: int | None = None) -> tuple[State, Any]:
         """One integrator step of ``h`` seconds from ``state``, with contacts and strain limiting if declared.
 
         The unit that adaptive stepping discards and redoes (with Newton iterations, or a smaller ``h``).
@@ -346,7 +361,7 @@ class Simulator:
 STRAIN_TOLERANCE = 1e-3
 
 #: Report criteria of the run health, in the order they are listed.
-HEALTH_CRITERIA: tuple[str, ...] = ("energy", "strain", "failsafe", "solver")
+HEALTH_CRITERIA: tuple[str, ...] = ("energy", "strain", "failsafe", "self_collision", "solver")
 
 
 class Health:
@@ -378,6 +393,8 @@ class Health:
                                  f"t={e['first_time']:.4g} s, at worst {e['worst']:.3g}"),
             "failsafe": lambda e: (f"collision fail-safe fired in {e['count']} steps (vertices frozen to an "
                                    f"obstacle), first at t={e['first_time']:.4g} s"),
+            "self_collision": lambda e: (f"self-collision's impact zones left {e['worst']:g} impacts unresolved in "
+                                         f"{e['count']} steps, first at t={e['first_time']:.4g} s"),
             "solver": lambda e: (f"linear solve unconverged in {e['count']} steps, first at "
                                  f"t={e['first_time']:.4g} s, largest residual {e['worst']:.3g}"),
         }
@@ -409,6 +426,8 @@ class _Recorder:
             sim.adaptive.window_min_step = math.inf
         if sim.strain_limiter is not None:
             sim.strain_limiter.reset_stats()
+        if sim.self_collider is not None:
+            sim.self_collider.totals.reset(st)
         self.pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity))
         self.pin_work, self.pin_p = 0.0, diagnostics.pin_power(model, st.x, st.v, st.t)
         self.frames: dict[str, list[float]] = {k: [] for k in self.FRAME_KEYS}
@@ -506,6 +525,7 @@ class _Recorder:
             for c, ev in sim.adaptive.stats.forced_events.items():
                 if c in ("energy", "strain"):
                     health.add(c, ev["first_time"], ev["worst"], int(ev["count"]))
+        self_report = sim.self_collider.report(sim.state, health) if sim.self_collider is not None else None
         warnings_ = health.messages(sim.strain_bound, sim._energy_growth)
         status, reason = self.status, self.reason
         if status == "ok" and warnings_:
@@ -557,6 +577,9 @@ class _Recorder:
         if self.col is not None:
             report["timing"]["t_collision"] = self.col.time
             report["collision"] = self.col.report(sim.collider)
+        if self_report is not None:
+            report["self_collision"] = self_report
+            report["timing"]["t_self_collision"] = self_report["time"]
         integ = sim.integrator
         if isinstance(integ, ImplicitIntegrator):
             n = max(tot["steps"], 1)
