@@ -241,3 +241,15 @@ def test_an_impact_zone_moves_rigidly_and_only_takes_energy():
     x1 = x + h * rigid_velocities(x, v, m, z, 1, h)
     d0 = np.linalg.norm(x[:, None] - x[None], axis=2)
     assert np.allclose(np.linalg.norm(x1[:, None] - x1[None], axis=2), d0)
+
+
+@pytest.mark.parametrize("name", ["crumple", "two_sheets"])
+def test_the_examples_load_and_step(name):
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / f"{name}.toml"
+    sim = ic.Simulator(ic.load_scene(path))
+    sim.step(2)
+    assert sim.self_collider is not None and np.all(np.isfinite(sim.positions))
+    if name == "two_sheets":
+        assert sim.model.pieces == [(0, 576), (576, 976)]

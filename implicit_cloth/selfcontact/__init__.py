@@ -8,12 +8,13 @@ stage have proposed ``(x1, v1)`` from the collision-free start ``x0``, the step'
 1. **Candidates** (:mod:`~implicit_cloth.selfcontact.broadphase`): vertex-triangle and edge-edge pairs whose
    boxes over the step come within the thickness; pairs sharing a vertex are never pairs.
 2. **Proximity** at the start: a pair nearer than ``thickness`` whose ``vbar`` approaches gets an inelastic
-   impulse along the pair's normal that stops the approach and separates it towards the thickness at no more
-   than the speed it approached with, and Coulomb friction (``self_friction``) on the pair's tangential
-   relative velocity, never reversing it.
+   impulse along the pair's normal that stops the approach (no more: pushing a resting pair apart would lift
+   it against gravity with energy from nowhere), and Coulomb friction (``self_friction``) on the pair's
+   tangential relative velocity, never reversing it.
 3. **Impacts** (:mod:`~implicit_cloth.selfcontact.response`): the exact time of impact of every candidate
    (:func:`implicit_cloth.collision.ccd.point_triangle_toi` and ``edge_edge_toi``, the coplanarity cubic);
-   each impact gets the same kind of impulse at the normal of its time of impact. Impulses of pairs that
+   each impact gets the same kind of impulse at the normal of its time of impact, which may part the pair by
+   up to ``IMPACT_SEPARATION`` thicknesses at the end of the step, no faster than it came. Impulses of pairs that
    share a vertex are averaged (Jacobi), and the rounds repeat (``collision.max_iterations``).
 4. **Rigid impact zones**, the fail-safe: vertices of impacts still left are gathered into zones (with the
    zones they touch) and each zone moves rigidly over the step with its own linear and angular momentum

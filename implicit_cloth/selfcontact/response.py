@@ -29,6 +29,9 @@ __all__ = ["Pairs", "Response", "cloth_edges", "pair_distances"]
 #: Impacts separate to at most this fraction of the thickness by the end of the step (at no more than the
 #: speed they approached with).
 IMPACT_SEPARATION = 0.1
+#: A root of the coplanarity cubic is an impact when the primitives are within this fraction of the thickness
+#: then (at the root a crossing point is in the plane only to rounding, so the tolerance must not be 0).
+IMPACT_TOLERANCE = 1e-3
 #: Most passes of the impact-zone fail-safe (zones merge every pass; Bridson et al. prove it ends).
 MAX_ZONE_PASSES = 50
 #: A vertex whose corrected end position left its box of the broad phase by more than this fraction of the
@@ -51,8 +54,8 @@ class Pairs:
 
     idx: np.ndarray
     vf: np.ndarray
-    lo: np.ndarray          # the broad phase's end positions, to tell when to search again
-    x1: np.ndarray
+    x1: np.ndarray          # the broad phase's end positions, to tell when to search again
+    d0: np.ndarray          # the pairs' distances at the start of the step, m
 
     @property
     def count(self) -> int:
@@ -68,10 +71,8 @@ class Pairs:
         idx = np.concatenate([np.column_stack([v, faces[f]]), np.column_stack([edges[a], edges[b]])])
         vf = np.concatenate([np.ones(len(v), dtype=bool), np.zeros(len(a), dtype=bool)])
         movable = np.any(inv[idx] > 0, axis=1)
-        return cls(idx[movable], vf[movable], x0, x1.copy())
-
-    def take(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return self.idx[mask], self.vf[mask]
+        idx, vf = idx[movable], vf[movable]
+        return cls(idx, vf, x1.copy(), closest(x0, idx, vf)[2])
 
 
 def closest(x: np.ndarray, idx: np.ndarray, vf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -116,16 +117,28 @@ def pair_distances(x: np.ndarray, faces: np.ndarray, edges: np.ndarray, vf_pairs
     return d[vf], d[~vf]
 
 
-def impacts(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def impacts(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray, tol: float,
+            d0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Time of impact (fraction of the step, inf if none) and unit normal (first minus second primitive) of each
     pair under the linear motion ``x0 -> x1``: the coplanarity cubic's earliest root at which the primitives
-    touch (:mod:`implicit_cloth.collision.ccd`)."""
+    are within ``tol`` (m) of each other (:mod:`implicit_cloth.collision.ccd`).
+
+    ``d0``: the pairs' distances at ``x0``; a pair farther apart than its vertices' two largest displacements
+    (one per primitive) cannot meet in the step and is not tested.
+    """
     k = len(idx)
     s = np.full(k, np.inf)
     n = np.zeros((k, 3))
     if not k:
         return s, n
     A, B = x0[idx], x1[idx]
+    if d0 is not None:
+        disp = np.sqrt(np.einsum("ikj,ikj->ik", B - A, B - A))
+        first = np.where(vf, disp[:, 0], disp[:, :2].max(axis=1))
+        second = np.where(vf, disp[:, 1:].max(axis=1), disp[:, 2:].max(axis=1))
+        reach = d0 <= first + second + tol
+    else:
+        reach = np.ones(k, dtype=bool)
     # the two primitives' boxes over the step must overlap (first: vertex or edge, second: triangle or edge)
     lo, hi = np.minimum(A, B), np.maximum(A, B)
     first = np.where(vf[:, None], [True, False, False, False], [True, True, False, False])
@@ -134,9 +147,8 @@ def impacts(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray) -> 
     hi1 = np.where(first[..., None], hi, -big).max(axis=1)
     lo2 = np.where(~first[..., None], lo, big).min(axis=1)
     hi2 = np.where(~first[..., None], hi, -big).max(axis=1)
-    near = np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)
+    near = reach & np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)
     t = np.flatnonzero(near & vf)
-    tol = 0.0
     if len(t):
         st, side = point_triangle_toi(A[t, 0], B[t, 0], A[t, 1], B[t, 1], A[t, 2], B[t, 2], A[t, 3], B[t, 3], tol)
         s[t] = st
@@ -205,6 +217,7 @@ class Response:
         self.faces, self.edges, self.masses = faces, edges, masses
         self.th, self.mu, self.rounds = thickness, friction, rounds
         self.wall: np.ndarray | None = None
+        self.tol = IMPACT_TOLERANCE * thickness
 
     def run(self, x0: np.ndarray, after: Any, h: float, inv: np.ndarray, pairs: Pairs, info: Any,
             wall: np.ndarray | None = None) -> None:
@@ -216,12 +229,12 @@ class Response:
         vb0 = vb.copy()
         v1 = after.v
         # proximity at the start: stop the approach of pairs nearer than the thickness
-        c, n, d = closest(x0, pairs.idx, pairs.vf)
-        near = d < th
+        near = pairs.d0 < th
         if np.any(near):
-            idx, cn, nn, dd = pairs.idx[near], c[near], n[near], d[near]
+            c, n, d = closest(x0, pairs.idx[near], pairs.vf[near])
+            idx, cn, nn = pairs.idx[near], c, n
             vn = _dot(np.einsum("ik,ikj->ij", cn, vb[idx]), nn)
-            dn = np.where(vn < 0, np.minimum(-vn, (th - dd) / h) - vn, 0.0)
+            dn = np.maximum(-vn, 0.0)       # inelastic: pushing the pair apart would lift it from nowhere
             info.proximities += int(np.count_nonzero(dn > 0))
             self._apply(vb, v1, idx, cn, nn, dn, inv, mu)
         # impacts
@@ -229,7 +242,7 @@ class Response:
         for _ in range(self.rounds):
             x1 = x0 + h * vb
             pairs = self._fresh(pairs, x0, x1, inv)
-            s, n = impacts(x0, x1, pairs.idx, pairs.vf)
+            s, n = impacts(x0, x1, pairs.idx, pairs.vf, self.tol, pairs.d0)
             hit = np.isfinite(s)
             info.rounds += 1
             if not np.any(hit):
@@ -245,7 +258,7 @@ class Response:
         else:
             x1 = x0 + h * vb
             pairs = self._fresh(pairs, x0, x1, inv)
-            hit = np.isfinite(impacts(x0, x1, pairs.idx, pairs.vf)[0])
+            hit = np.isfinite(impacts(x0, x1, pairs.idx, pairs.vf, self.tol, pairs.d0)[0])
         if np.any(hit):
             self._zones(x0, vb, v1, h, inv, pairs, hit, info)
         moved = np.any(vb != vb0, axis=1)
@@ -292,7 +305,7 @@ class Response:
             self._rigid(x0, vb, v1, h, inv, label)
             x1 = x0 + h * vb
             pairs = self._fresh(pairs, x0, x1, inv)
-            hit = np.isfinite(impacts(x0, x1, pairs.idx, pairs.vf)[0])
+            hit = np.isfinite(impacts(x0, x1, pairs.idx, pairs.vf, self.tol, pairs.d0)[0])
             if not np.any(hit):
                 break
         info.unresolved = int(hit.sum())
