@@ -34,11 +34,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import ROOT, ic, machine, write_outputs
 from scipy.spatial import cKDTree
-
-from _common import ROOT, machine, write_outputs
-
-import implicit_cloth as ic
 
 G = 9.81
 TH = 0.005
@@ -173,10 +170,11 @@ def broad_phase_rows(n: int, repeats: int = 5) -> list[dict]:
 
 
 def exponent(rows: list[dict], key: str) -> float | None:
+    """Least-squares slope of log(cost per step) against log(vertices)."""
     if len(rows) < 2:
         return None
     n = np.log([r["vertices"] for r in rows])
-    t = np.log([max(r[key] * r["substeps"], 1e-12) / r["substeps"] for r in rows])
+    t = np.log([max(r[key], 1e-12) for r in rows])
     return float(np.polyfit(n, t, 1)[0])
 
 
