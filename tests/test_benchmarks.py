@@ -41,3 +41,16 @@ def test_bench_unknown_name_exits_2(capsys):
 
     assert main(["bench", "nonsense"]) == 2
     assert "unknown benchmark 'nonsense'" in capsys.readouterr().err
+
+
+def test_self_collision_quick_via_cli(tmp_path):
+    from implicit_cloth.cli import main
+
+    assert main(["bench", "self_collision", "--quick", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "self_collision.json").read_text())
+    assert res["benchmark"] == "self_collision" and res["quick"] is True
+    assert [r["resolution"] for r in res["rows"]] == [10, 14]
+    for r in res["rows"]:
+        assert r["ms_step"] > 0 and r["max_crossings"] == 0 and r["unresolved_steps"] == 0
+        assert r["ms_self"] <= r["ms_step"]
+    assert "| 14² |" in (tmp_path / "self_collision.md").read_text()
