@@ -109,38 +109,39 @@ def energy_scale(model: Model, x: np.ndarray, v: np.ndarray, duration: float | N
 class StepMeasures:
     """Energies, spring strains and external power of states, for the energy balance of steps.
 
-    One evaluation of the spring lengths per state gives both the spring energy and the strains; the last
-    two states measured are cached (a step's end is the next step's start).
+    Through the effects' protocol: the stored (``elastic``) energy of the springs and their strains from one
+    evaluation of the spring lengths, the other conservative effects' potentials (gravity), and the power
+    the effects bring in from outside (``power``: the wind) with the moving pins'. The last two states
+    measured are cached (a step's end is the next step's start).
     """
 
     def __init__(self, model: Model) -> None:
         self.model = model
-        self._wind = next((e for e in model.effects if e.name == "drag" and e.wind is not None), None)
         self._pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity))
-        self._gravity = [e for e in model.effects if e.name == "gravity"]
+        self._fields = [e for e in model.effects if e.conservative and not e.elastic]
+        self._elastic = [e for e in model.effects if e.elastic and e is not model.springs]
         self._cache: list[tuple[Any, tuple[float, float, float, np.ndarray | None, float]]] = []
 
     def power(self, s: Any) -> float:
-        """Power of the pins and of the wind on the cloth, W."""
+        """Power of the pins and of outside sources through the effects (the wind) on the cloth, W."""
         p = pin_power(self.model, s.x, s.v, s.t) if self._pins_move else 0.0
-        if self._wind is not None:
-            w = np.broadcast_to(self._wind.wind.velocity(s.x, s.t), s.v.shape)
-            p += float(np.einsum("i,ij,ij->", self._wind._cA[:, 0], w, s.v))
-        return p
+        return p + float(sum(e.power(s.x, s.v, s.t) for e in self.model.effects))
 
     def __call__(self, s: Any) -> tuple[float, float, float, np.ndarray | None, float]:
-        """``(kinetic, gravity, springs)`` energies (J), spring strains ``(l - L0) / L0`` (or None) and power (W)."""
+        """``(kinetic, field, stored)`` energies (J: gravity's, the springs'), spring strains ``(l - L0) / L0``
+        (or None) and power (W)."""
         for state, measured in self._cache:
             if state is s:
                 return measured
         m = self.model
         kin = m.kinetic_energy(s.v)
-        grav = float(sum(e.potential(s.x) for e in self._gravity))
-        spring, strain = 0.0, None
+        grav = float(sum(e.potential(s.x) for e in self._fields))
+        spring = float(sum(e.potential(s.x) for e in self._elastic))
+        strain = None
         sp = m.springs
         if sp is not None and len(sp.i):      # spring energy and strains from one evaluation of the lengths
             ext = sp.lengths(s.x) - sp.L0
-            spring = 0.5 * float(np.dot(sp.k, ext * ext))
+            spring += 0.5 * float(np.dot(sp.k, ext * ext))
             strain = np.divide(ext, sp.L0, out=np.zeros_like(ext), where=sp.L0 > 0)
         out = (kin, grav, spring, strain, self.power(s))
         self._cache = self._cache[-1:] + [(s, out)]

@@ -13,7 +13,7 @@ again whenever the user assigns positions).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from . import cloth as _cloth
 from .assembly import SystemMatrix
 from .backend import Backend, get_backend
 from .config.validate import fmt
-from .effects import Effect, build_effects
+from .effects import Effect, SpringSet, build_effects
 from .errors import SceneError
 
 
@@ -95,7 +95,8 @@ class Model:
         self._init_pins(c["pins"])
         self.effects: list[Effect] = build_effects(self, scene.data["effects"], c["springs"])
         self.effect_names: list[str] = scene.effects
-        self.springs = next((e for e in self.effects if e.name == "springs"), None)
+        #: the elastic effect made of springs (strain measures, strain limiting), None without springs
+        self.springs: SpringSet | None = next((cast(SpringSet, e) for e in self.effects if e.elastic), None)
         self._system: SystemMatrix | None = None
         self.inv_masses = 1.0 / self.masses
         self.free = np.ones(self.n, dtype=bool)

@@ -14,13 +14,13 @@ import numpy as np
 
 from . import diagnostics
 from .adaptive import AdaptiveStats, StepController
+from .config.validate import number as _number
 from .constraints import Constraints
 from .errors import DivergenceError, SolverWarning
-from .integrators import make_integrator
 from .files import save_npz
+from .integrators import ImplicitIntegrator, make_integrator
 from .interrupt import deferred_interrupt
 from .model import Model, State
-from .config.validate import number as _number
 from .scene import Scene, load_scene
 from .scene import check_run_length as _run_length
 
@@ -154,7 +154,7 @@ class Simulator:
         #: Provot strain limiting (``[simulation.strain_limit]``), else None
         self.strain_limiter: Any = None
         if "strain_limit" in sim:
-            from .strain_limit import StrainLimiter   # only scenes that declare it import it
+            from .strain_limit import StrainLimiter  # only scenes that declare it import it
 
             self.strain_limiter = StrainLimiter(self.model, sim["strain_limit"])
 
@@ -185,7 +185,8 @@ class Simulator:
         self._reset_history()
 
     def _reset_history(self) -> None:
-        """After the state is assigned: integrator history, suspended adaptive criteria and resting contacts are forgotten."""
+        """After the state is assigned: integrator history, suspended adaptive criteria and held contacts are
+        forgotten."""
         self.integrator.reset()
         if self.adaptive is not None:
             self.adaptive.reset()
@@ -218,7 +219,7 @@ class Simulator:
         col = self.collider
         if col is not None and self.integrator.implicit:
             return col.step(self.integrator, state, h, self._pins, self.strain_limiter, newton)
-        if self.integrator.implicit:
+        if isinstance(self.integrator, ImplicitIntegrator):
             new, info = self.integrator.step(state, h, self._pins, newton=newton)
         else:
             new, info = self.integrator.step(state, h)
@@ -226,9 +227,7 @@ class Simulator:
             self.strain_limiter.apply(new, h)
         if col is not None and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
             # last, so that nothing after it moves the cloth into an obstacle; corrects new.x, new.v in place
-            v_before = new.v.copy()
             info.collision = col.respond(state, new, h)
-            info.collision.work = col._impulse_work(v_before, new)
         return new, info
 
     def _advance(self) -> Any:
@@ -555,9 +554,9 @@ class _Recorder:
         if self.col is not None:
             report["timing"]["t_collision"] = self.col.time
             report["collision"] = self.col.report(sim.collider)
-        if sim.integrator.implicit:
+        integ = sim.integrator
+        if isinstance(integ, ImplicitIntegrator):
             n = max(tot["steps"], 1)
-            integ = sim.integrator
             report["solver"] = {
                 "tolerance": integ.tolerance,
                 "max_iterations_allowed": integ.max_iterations,

@@ -55,7 +55,8 @@ class StrainLimiter:
     Attributes
     ----------
     stats : dict
-        Since construction or the start of the last :meth:`Simulator.run`: ``steps_limited`` (steps that moved a vertex),
+        Since construction or the start of the last :meth:`Simulator.run`: ``steps_limited`` (steps that moved
+        a vertex),
         ``springs_limited`` (over-stretched springs found before each step's
         first pass, summed), ``max_iterations`` (most passes in a step),
         ``max_strain_after`` (largest strain left after a step, over all

@@ -159,7 +159,8 @@ def _side_before(roots: np.ndarray, coef: np.ndarray, toi: np.ndarray, j: np.nda
     """Sign of f just before the hit (midway from the previous root, or 0, to it); sign f(0) without a hit."""
     k = len(toi)
     prev = np.where(j > 0, roots[np.arange(k), np.maximum(j - 1, 0)], 0.0)
-    s = np.where(np.isfinite(toi), 0.5 * (np.where(np.isfinite(prev), prev, 0.0) + np.where(np.isfinite(toi), toi, 0.0)), 0.0)
+    mid = 0.5 * (np.where(np.isfinite(prev), prev, 0.0) + np.where(np.isfinite(toi), toi, 0.0))
+    s = np.where(np.isfinite(toi), mid, 0.0)
     return np.sign(_cubic(coef, s))
 
 

@@ -38,8 +38,9 @@ from typing import Any
 import numpy as np
 
 from . import broadphase, ccd
+from .context import near
 from .features import EDGE_FRACTION, edge_minimum
-from .shapes import MeshShape, Plane, local_aabb
+from .shapes import MeshShape
 
 #: Kinds of contact plane.
 VERTEX, FEATURE = 0, 1
@@ -176,18 +177,6 @@ class Frame:
     #: contacts are looked for within ``thickness + reach`` (planes stay at the thickness): > 0 finds the
     #: contacts a state rests on, with a still frame (x1 = x0)
     reach: float = 0.0
-
-
-def near(shape, p0: np.ndarray, p1: np.ndarray, margin: float) -> np.ndarray:
-    """Bool mask of swept boxes (rows of p0 -> p1, or (K, m, 3) primitives) near the shape's local box."""
-    if isinstance(shape, Plane):
-        lo = np.minimum(p0, p1)[..., 2]
-        return lo.min(axis=-1) <= margin if lo.ndim > 1 else lo <= margin
-    a, b = local_aabb(shape)
-    lo, hi = np.minimum(p0, p1), np.maximum(p0, p1)
-    if lo.ndim == 3:
-        lo, hi = lo.min(axis=1), hi.max(axis=1)
-    return np.all((lo <= b + margin) & (hi >= a - margin), axis=1)
 
 
 def detect(frame: Frame, obstacles: list, tol: float | None = None) -> Planes:

@@ -7,7 +7,12 @@ terms), so integrators and the assembly know nothing about what the force is:
     Add the force, N, on every vertex to ``out`` (N, 3).
 ``potential(x)``
     Potential energy, J (0 for dissipative effects); ``conservative`` says which
-    effects have one (the run report lists their energies).
+    effects have one (the run report lists their energies), ``elastic`` which
+    of those is energy the cloth stores (>= 0: the springs; gravity's only
+    changes).
+``power(x, v, t)``
+    Power an outside source delivers to the cloth through the effect, W: the
+    wind through the drag (0 for the others), for the energy balance of a step.
 ``pairs()``
     (P, 2) vertex pairs whose 3x3 Jacobian blocks couple (for the sparsity pattern).
 ``bind(system)``
@@ -47,10 +52,14 @@ class Effect(Protocol):
     name: str
     #: whether :meth:`potential` is an energy the run reports (gravity, springs) or 0 (drag)
     conservative: bool
+    #: whether that energy is stored in the cloth (>= 0; the springs), not a field's (gravity)
+    elastic: bool
 
     def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None: ...
 
     def potential(self, x: np.ndarray) -> float: ...
+
+    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float: ...
 
     def pairs(self) -> np.ndarray: ...
 
@@ -58,6 +67,21 @@ class Effect(Protocol):
 
     def linearize(self, x: np.ndarray, v: np.ndarray, t: float, c_x: float, c_v: float,
                   w: np.ndarray | None, system: Any, kw: np.ndarray | None, f: np.ndarray) -> None: ...
+
+
+class SpringSet(Effect, Protocol):
+    """An elastic effect made of springs (``elastic``): its pairs ``i``, ``j``, constants ``k`` (N/m), rest
+    lengths ``L0`` (m), rows per kind, and its lengths and strains, for the run's strain measures."""
+
+    i: np.ndarray
+    j: np.ndarray
+    k: np.ndarray
+    L0: np.ndarray
+    kinds: dict[str, slice]
+
+    def lengths(self, x: np.ndarray) -> np.ndarray: ...
+
+    def strain(self, x: np.ndarray) -> np.ndarray: ...
 
 
 def build_effects(model: Any, effects: dict[str, Any], springs: dict[str, Any]) -> list[Effect]:

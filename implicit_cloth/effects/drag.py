@@ -25,6 +25,7 @@ class Drag:
 
     name = "drag"
     conservative = False
+    elastic = False
 
     def __init__(self, areas: np.ndarray, c: float, wind: Any = None) -> None:
         self.c = float(c)
@@ -37,6 +38,13 @@ class Drag:
 
     def potential(self, x: np.ndarray) -> float:
         return 0.0
+
+    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        """The wind's power on the cloth through the drag, ``sum_i c A_i w . v_i`` (0 without wind), W."""
+        if self.wind is None:
+            return 0.0
+        w = np.broadcast_to(self.wind.velocity(x, t), v.shape)
+        return float(np.einsum("i,ij,ij->", self._cA[:, 0], w, v))
 
     def pairs(self) -> np.ndarray:
         return np.zeros((0, 2), dtype=np.int64)

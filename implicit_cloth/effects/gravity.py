@@ -19,6 +19,7 @@ class Gravity:
 
     name = "gravity"
     conservative = True
+    elastic = False
 
     def __init__(self, masses: np.ndarray, g) -> None:
         self.g = np.asarray(g, dtype=float)
@@ -29,6 +30,9 @@ class Gravity:
 
     def potential(self, x: np.ndarray) -> float:
         return -float(np.einsum("ij,ij->", self._mg, x))
+
+    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        return 0.0   # its work is the change of its potential
 
     def pairs(self) -> np.ndarray:
         return np.zeros((0, 2), dtype=np.int64)

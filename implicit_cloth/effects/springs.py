@@ -56,6 +56,7 @@ class Springs:
 
     name = "springs"
     conservative = True
+    elastic = True
 
     def __init__(self, n: int, pairs: np.ndarray, stiffness: np.ndarray, damping: np.ndarray,
                  rest_length: np.ndarray, kinds: dict[str, slice]) -> None:
@@ -118,6 +119,9 @@ class Springs:
 
     def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
         out += self._B @ self.spring_forces(x, v)
+
+    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        return 0.0   # internal: its work is the change of its potential
 
     def potential(self, x: np.ndarray) -> float:
         """Elastic energy ``sum_s k (l - L0)^2 / 2``, J."""

@@ -14,7 +14,7 @@ oscillator the amplitude shrinks by ``1 / sqrt(1 + w^2 h^2)`` per step.
 from __future__ import annotations
 
 from ..model import State
-from .base import ImplicitIntegrator, StepInfo, Scheme
+from .base import ImplicitIntegrator, Scheme, StepInfo
 
 
 class BackwardEuler(ImplicitIntegrator):

@@ -24,7 +24,6 @@ from ..constraints import Constraints
 from ..model import Model, State
 from ..solvers import Filter, filtered_pcg, make_preconditioner
 
-
 #: Relative accuracy of the Newton corrections' linear solves (inexact Newton: the next iteration corrects it).
 NEWTON_FORCING = 0.1
 #: Newton stops when a correction is this small relative to the step's velocity change (M-norm).
@@ -136,8 +135,9 @@ class ImplicitIntegrator(Integrator):
 
     def __init__(self, model: Model, solver: dict[str, Any] | None = None) -> None:
         super().__init__(model, solver)
-        opts = {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "multigrid", "newton_iterations": 1}
-        opts.update(solver or {})
+        from ..scene import DEFAULTS  # the [solver] table's defaults, for a solver given without them
+
+        opts: dict[str, Any] = {**DEFAULTS["solver"], **(solver or {})}
         self.tolerance = float(opts["tolerance"])
         self.max_iterations = int(opts["max_iterations"])
         #: Newton iterations of a step (1: one linearisation, BW98); a caller may ask for more per step
@@ -245,8 +245,9 @@ class ImplicitIntegrator(Integrator):
 
         with ``U`` gravity and the springs' elastic energy, and ``D`` the dissipation potential of the forces
         linear in the velocity (spring damping, drag with its wind) and of the constant ones (kinetic friction),
-        their geometry taken at the current iterate. Each iteration solves ``A_k d = -R(v_k)`` (the same filtered PCG and constraints,
-        constrained components 0: every iterate meets the constraints the first solve met) and backtracks
+        their geometry taken at the current iterate. Each iteration solves ``A_k d = -R(v_k)`` (the same filtered
+        PCG and constraints, constrained components 0: every iterate meets the constraints the first solve met)
+        and backtracks
         ``v_k + a d`` from ``a = 1`` until ``Phi`` decreases enough (Armijo, ``1e-4``), so no iteration can
         raise it. Stops when ``|a d| <= tolerance |v - v0|``, after ``iterations``, or when the line search
         fails (the iterate is kept). Returns the step's state and figures.

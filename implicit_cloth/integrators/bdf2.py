@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from ..model import State
 from .backward_euler import BackwardEuler
-from .base import StepInfo, Scheme
+from .base import Scheme, StepInfo
 
 
 class BDF2(BackwardEuler):

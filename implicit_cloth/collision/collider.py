@@ -1,0 +1,281 @@
+"""The collision stage of one cloth: :class:`Collider` (module docstring of :mod:`implicit_cloth.collision`)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from ..constraints import Constraints
+from ..errors import SceneError
+from ..integrators.base import StepInfo
+from . import contacts, fallback, friction
+from .context import CollisionInfo, Context
+from .shapes import MeshShape
+
+#: A held contact stays held while its vertex is within this multiple of the thickness of the obstacle.
+CONTACT_BAND = 1.25
+#: A contact whose impulse pulls its vertex towards the obstacle by more than this change of velocity (m/s)
+#: is released within the step (and the step solved again): a moving obstacle dragging the cloth back. Lighter
+#: pulls (where a resting cloth leaves the surface, about its weight) are released from the next step on.
+PULL_SPEED = 0.5
+#: New contacts violated by at most this fraction of the thickness do not call for another solve: they are
+#: held from the next step on, and the geometric response keeps them out in this one.
+RESOLVE_FRACTION = 0.1
+
+
+class Collider:
+    """Collision stage for one model and the validated ``obstacles`` and ``collision`` tables.
+
+    Parameters
+    ----------
+    obstacles : list of dict
+        Validated ``[[obstacles]]`` tables.
+    settings : dict
+        Validated ``[collision]`` table (``thickness`` m, ``restitution``, ``max_iterations``).
+    model : Model
+        The cloth (masses, faces, pins).
+
+    Raises
+    ------
+    SceneError
+        Naming the obstacle, if free cloth vertices start inside it deeper than the thickness.
+    """
+
+    def __init__(self, obstacles: list[dict[str, Any]], settings: dict[str, Any], model: Any) -> None:
+        self.model = model
+        self.ctx = Context.build(obstacles, settings, model)
+        self._mu = self.ctx.mu
+        self._check_start(model.rest_positions, 0.0)
+        #: (state, contacts held at its end) of the last steps: a step from that state starts with them
+        self._carry: list[tuple[Any, contacts.Planes]] = []
+        #: the last attempt at a step: (state, h, its contacts, its end velocities), for a nonlinear redo
+        self._attempt: tuple[Any, float, contacts.Planes, np.ndarray] | None = None
+
+    # the settings, as the report reads them
+    @property
+    def obstacles(self) -> list[Any]:
+        return self.ctx.obstacles
+
+    @property
+    def thickness(self) -> float:
+        return self.ctx.thickness
+
+    @property
+    def edges(self) -> np.ndarray:
+        return self.ctx.edges
+
+    def _check_start(self, x: np.ndarray, t: float) -> None:
+        """A :class:`SceneError` naming the obstacle if cloth vertices start inside it, deeper than the thickness."""
+        th = self.ctx.thickness
+        for k, ob in enumerate(self.ctx.obstacles):
+            depth = self.depths(k, x, t)
+            bad = (depth > th) & self.ctx.free    # pins are the user's: never moved, never checked
+            if np.any(bad):
+                raise SceneError(
+                    f"obstacles[{k}]: {int(bad.sum())} cloth vertices start inside it (the deepest "
+                    f"{1e3 * float(depth.max()):.3g} mm, more than the thickness {th:g} m; the first is "
+                    f"vertex {int(np.flatnonzero(bad)[0])}): move the obstacle or the cloth apart, got "
+                    f"{ob.describe()}")
+
+    def depths(self, k: int, x: np.ndarray, t: float) -> np.ndarray:
+        """Depth (m, > 0 inside, 0 outside) of world points ``x`` inside obstacle ``k`` at time ``t``.
+
+        Primitive shapes: minus the signed distance. Meshes: for a closed (watertight) mesh, the distance to
+        the nearest face of the points whose winding number says they are inside; an open mesh has no inside
+        (0 everywhere).
+        """
+        ob = self.ctx.obstacles[k]
+        p = ob.motion.to_local(x, t)
+        if not isinstance(ob.shape, MeshShape):
+            return np.maximum(-ob.shape.distance(p), 0.0)
+        return ob.shape.depth(p)
+
+    @property
+    def held(self) -> np.ndarray:
+        """Vertices held by a contact at the end of the last step (carried into the next one), (K,) int."""
+        return self._carry[-1][1].idx.copy() if self._carry else np.zeros(0, dtype=np.int64)
+
+    def reset(self) -> None:
+        """Forget the contacts carried from step to step (called when the state is assigned)."""
+        self._carry = []
+        self._attempt = None
+
+    # ------------------------------------------------------------------ explicit methods
+    def respond(self, before: Any, after: Any, h: float) -> CollisionInfo:
+        """The geometric response (:func:`~implicit_cloth.collision.fallback.respond`, with friction) of an
+        explicit step, in place; its ``work`` is the velocity changes' against moving obstacles."""
+        v_before = after.v.copy()
+        info = fallback.respond(self.ctx, before, after, h)
+        info.work = fallback.impulse_work(self.ctx, v_before, after)
+        return info
+
+    # ------------------------------------------------------------------ implicit step with contacts
+    def step(self, integrator: Any, state: Any, h: float, pins: Constraints,
+             limiter: Any = None, newton: int | None = None) -> tuple[Any, StepInfo]:
+        """One implicit step of ``h`` from the collision-free ``state`` with contacts as constraints of the solve.
+
+        Solve, detect, constrain, solve again: the step is solved with the contacts carried from the
+        previous step (:meth:`_carried`); contact detection on the proposed step
+        (:func:`~implicit_cloth.collision.contacts.detect`) adds every vertex that would come nearer than the
+        thickness to an obstacle, and Coulomb friction (:func:`~implicit_cloth.collision.friction.update`)
+        decides which contacts stick and which slide; while new contacts (or the friction of new ones) call
+        for it, the step is solved again from the same state (warm-started), at most
+        ``collision.max_iterations`` solves, each with ``newton`` Newton iterations (None: the solver's
+        setting). Then contacts leave inelastically (:func:`~implicit_cloth.collision.friction.inelastic`),
+        ``limiter`` (strain limiting) runs with the contact planes held, and the geometric response (without
+        friction) corrects what the solves left, counted as fallback corrections.
+
+        Returns the new state and the step's :class:`~implicit_cloth.integrators.StepInfo`, whose
+        ``collision`` is this stage's :class:`~implicit_cloth.collision.context.CollisionInfo`.
+        """
+        t_start = time.perf_counter()
+        active, carried = self._carried(state, h)
+        start = None
+        last = self._attempt
+        if newton is not None and newton > 1 and last is not None and last[0] is state and last[1] == h:
+            # redone nonlinearly: from where the last attempt at this step ended, with its contacts
+            active = contacts.merge(active, last[2])
+            start = last[3]
+        new, total, info, cons, active, t_solve = self._solve_rounds(integrator, state, h, pins, active,
+                                                                     carried, newton, start)
+        self._attempt = (state, h, active.take(slice(None)), new.v.copy())
+        info.resting = len(active)
+        info.solves = total.solves
+        if np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
+            info.work = self._finish(state, new, h, cons, active, carried, total.constraint_impulse, limiter, info)
+        self._carry = self._carry[-7:] + [(new, active.take(active.force >= 0.0))]
+        info.t_collision = time.perf_counter() - t_start - t_solve
+        total.collision = info
+        return new, total
+
+    def _solve_rounds(self, integrator: Any, state: Any, h: float, pins: Constraints, active: contacts.Planes,
+                      carried: np.ndarray, newton: int | None, start: np.ndarray | None):
+        """The rounds of :meth:`step`: solve, update friction and releases, detect; again while needed."""
+        total = StepInfo()
+        info = CollisionInfo()
+        guess = None
+        t_solve = 0.0
+        cons, new = pins, state
+        switched = np.zeros(self.ctx.n, dtype=bool)
+        released = np.zeros(self.ctx.n, dtype=bool)
+        for rnd in range(self.ctx.max_rounds):
+            cons = self._constraints(pins, active, state.t, h)
+            ts = time.perf_counter()
+            new, si = integrator.step(state, h, cons, guess, newton, start)
+            t_solve += time.perf_counter() - ts
+            start = None
+            total.absorb(si)
+            total.constraint_impulse = si.constraint_impulse
+            info.rounds = rnd + 1
+            if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
+                break
+            changed = False
+            if len(active):
+                active, changed = self._after_solve(active, cons, si.constraint_impulse, new.v, h,
+                                                    carried if rnd == 0 else active.idx, switched, released)
+            found = contacts.detect(self._frame(state, new), self.ctx.obstacles)
+            if len(found):
+                info.contacts += int(np.count_nonzero(~np.isin(found.idx, active.idx)))
+                active = contacts.merge(active, found)
+                changed |= float(found.viol.max()) > RESOLVE_FRACTION * self.ctx.thickness
+            if not changed:
+                break      # small new violations are held from the next step on; the response keeps them out now
+            guess = new.v - state.v
+        return new, total, info, cons, active, t_solve
+
+    def _after_solve(self, active: contacts.Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray,
+                     h: float, settled: np.ndarray, switched: np.ndarray,
+                     released: np.ndarray) -> tuple[contacts.Planes, bool]:
+        """Friction states and releases from a solve; whether the step must be solved again.
+
+        The friction changes of contacts not in ``settled`` (after the first solve: the contacts the step did
+        not carry; after later ones: none) are solved again, the others wait for the next step; a contact
+        pulling its vertex hard towards the obstacle is released now, lighter pulls next step.
+        """
+        changed = friction.update(active, cons, J, v, h, self._mu[active.ob], switched)
+        again = bool(np.any(changed & ~np.isin(active.idx, settled)))
+        pull = (active.force * h < -PULL_SPEED * self.ctx.masses[active.idx]) & ~released[active.idx]
+        if np.any(pull):
+            released[active.idx[pull]] = True
+            active = active.take(~pull)
+            again = True
+        return active, again
+
+    def _finish(self, state: Any, new: Any, h: float, cons: Constraints, active: contacts.Planes,
+                carried: np.ndarray, J: np.ndarray | None, limiter: Any, info: CollisionInfo) -> float:
+        """After the solves: inelastic contacts, strain limiting, the geometric fallback; the obstacles' work, J.
+
+        The work: the contacts' impulses (normal, and tangential while sticking) and the kinetic friction
+        force over the step times the obstacle's velocity at the contact, plus the velocity changes after.
+        """
+        work = 0.0
+        if cons.n_contacts and J is not None:
+            work += float(np.einsum("ij,ij->", J[cons.contact] + h * cons.friction, cons.velocity))
+        if len(active):
+            friction.stop_reversed(active, cons, new)
+            work += friction.inelastic(active, cons, carried, state, new, self.ctx.restitution, self.ctx.masses)
+        if limiter is not None:
+            limiter.apply(new, h, planes=(cons.contact, cons.normal, cons.offset) if cons.n_contacts else None)
+        v_before = new.v.copy()
+        self.ctx.friction = False
+        try:
+            fb = fallback.respond(self.ctx, state, new, h)
+        finally:
+            self.ctx.friction = True
+        work += fallback.impulse_work(self.ctx, v_before, new)
+        info.fallback, info.failsafe, info.max_penetration = fb.contacts, fb.failsafe, fb.max_penetration
+        info.candidates, info.toi = fb.candidates, fb.toi
+        return work
+
+    def _frame(self, before: Any, after: Any) -> contacts.Frame:
+        c = self.ctx
+        return contacts.Frame(before.x, after.x, before.t, after.t, c.thickness, c.edges, c.faces, c.free)
+
+    def _carried(self, state: Any, h: float) -> tuple[contacts.Planes, np.ndarray]:
+        """The contacts the step starts with: those held at the end of the step that produced ``state``.
+
+        Their planes are taken anew at ``state`` (the contact tests at ``state`` with a reach of
+        ``CONTACT_BAND`` thicknesses: vertex contacts on the tangent plane of the inflated surface at the
+        nearest point, feature contacts as found again); a vertex that moved farther away, or whose contact
+        pulled it in the last solve, is free. They keep their normal force and friction state. With no
+        carried contacts (the first step, or after the state was assigned), the vertices within the band,
+        sticking where there is friction, as new contacts. Returns the contacts and the vertices carried.
+        """
+        c = self.ctx
+        prev = next((p for s, p in reversed(self._carry) if s is state), None)
+        still = contacts.Frame(state.x, state.x, state.t, state.t + h, c.thickness, c.edges, c.faces, c.free,
+                               reach=(CONTACT_BAND - 1.0) * c.thickness)
+        near = contacts.detect(still, c.obstacles)
+        near.impact[:] = 0.0
+        near.stick &= self._mu[near.ob] > 0
+        if prev is None:
+            return near, np.zeros(0, dtype=np.int64)
+        out = near.take(np.isin(near.idx, prev.idx))
+        contacts.inherit(prev, out)
+        return out, out.idx.copy()
+
+    def _constraints(self, pins: Constraints, active: contacts.Planes, t0: float, h: float) -> Constraints:
+        """World planes at ``t0 + h``, obstacle velocities and friction of the active contacts.
+
+        The obstacle's velocity at a contact is its contact point's mean velocity over the step (the chord:
+        a keyframe inside the step included).
+        """
+        if not len(active):
+            return pins
+        t1 = t0 + h
+        k = len(active)
+        n = np.empty((k, 3))
+        offset = np.empty(k)
+        u = np.empty((k, 3))
+        for j, ob in enumerate(self.ctx.obstacles):
+            sel = active.ob == j
+            if not np.any(sel):
+                continue
+            c1, R1 = ob.motion.pose(t1)
+            n[sel] = active.n[sel] @ R1.T
+            offset[sel] = active.off[sel] + n[sel] @ c1
+            u[sel] = (ob.motion.to_world(active.point[sel], t1) - ob.motion.to_world(active.point[sel], t0)) / h
+        stick, fr = friction.friction_forces(active, self._mu[active.ob])
+        return pins.with_contacts(active.idx, n, offset, u, stick, fr)

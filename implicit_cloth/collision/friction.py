@@ -1,0 +1,124 @@
+"""Coulomb friction and inelastic contact of the contacts an implicit solve held.
+
+Friction lives in the solve, in Baraff & Witkin's vocabulary (see :mod:`implicit_cloth.constraints`): a
+*sticking* contact is constrained in all three directions (its tangential velocity the obstacle's), a
+*sliding* one only along its normal, with the kinetic force ``-mu N s`` (``N`` its normal force in the last
+solve that held it, ``s`` its sliding direction). After each solve :func:`update` compares the constraint
+impulses with the friction cone:
+
+* a sticking contact whose tangential impulse exceeds ``mu`` times its normal impulse starts to slide, in the
+  direction the impulse held it back from;
+* a sliding contact whose tangential velocity relative to the obstacle the friction turned back sticks.
+
+A constant kinetic force that cannot reverse a motion, and a sticking constraint that prescribes the
+obstacle's velocity, only take energy away. Within one step a contact changes its state at most once, so
+the solves of a step cannot cycle; a contact that the last solve turned back is stopped by
+:func:`stop_reversed` (a velocity change that only removes kinetic energy).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..constraints import Constraints
+from .contacts import Planes
+
+
+def friction_forces(active: Planes, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(stick, force)``: which contacts stick (where ``mu > 0``) and the kinetic force on the sliding ones, N."""
+    stick = active.stick & (mu > 0)
+    force = np.where(stick[:, None], 0.0, -(mu * np.maximum(active.force, 0.0))[:, None] * active.slip)
+    return stick, force
+
+
+def update(active: Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray, h: float, mu: np.ndarray,
+           switched: np.ndarray) -> np.ndarray:
+    """Update the contacts' normal forces and Coulomb states from a solve (in place; module docstring).
+
+    Parameters
+    ----------
+    active : Planes
+        The contacts held in the solve (rows in the order of ``cons.contact``).
+    cons : Constraints
+        The solve's constraints.
+    J : (N, 3) array or None
+        The solve's constraint impulse, N*s.
+    v : (N, 3) array
+        The solve's end velocities, m/s.
+    mu : (K,) array
+        Each contact's friction coefficient.
+    switched : (N,) bool array
+        Vertices whose contact changed its state already in this step (updated in place).
+
+    Returns
+    -------
+    (K,) bool array
+        The contacts whose state changed.
+    """
+    if J is None:
+        return np.zeros(len(active), dtype=bool)
+    n = cons.normal
+    Jc = J[active.idx]
+    jn = np.einsum("ij,ij->i", Jc, n)
+    active.force = jn / h
+    jt = Jc - jn[:, None] * n
+    jt_norm = np.sqrt(np.einsum("ij,ij->i", jt, jt))
+    rel = v[active.idx] - cons.velocity
+    vt = rel - np.einsum("ij,ij->i", rel, n)[:, None] * n
+    vt_norm = np.sqrt(np.einsum("ij,ij->i", vt, vt))
+    stick = active.stick & (mu > 0)
+    free = ~switched[active.idx]
+    to_slip = stick & free & (jt_norm > mu * np.maximum(jn, 0.0) * (1.0 + 1e-9) + 1e-15)
+    sliding = ~stick & (mu > 0)
+    to_stick = sliding & free & (np.einsum("ij,ij->i", vt, active.slip) <= 0.0)
+    keep = sliding & ~to_stick & (vt_norm > 0)
+    active.slip[to_slip] = -jt[to_slip] / jt_norm[to_slip, None]
+    active.slip[keep] = vt[keep] / vt_norm[keep, None]
+    active.slip[to_stick] = 0.0
+    active.stick = (stick & ~to_slip) | to_stick
+    changed = to_slip | to_stick
+    switched[active.idx[changed]] = True
+    return changed
+
+
+def stop_reversed(active: Planes, cons: Constraints, after: Any) -> None:
+    """Sliding contacts that the last solve's friction turned back (sticking since :func:`update`) take the
+    obstacle's tangential velocity (positions kept; from the next step on they stick)."""
+    if not cons.n_contacts:
+        return
+    pos = np.full(len(after.v), -1, dtype=np.int64)
+    pos[cons.contact] = np.arange(cons.n_contacts)
+    r = pos[active.idx]
+    now = (r >= 0) & ~cons.stick[np.maximum(r, 0)] & active.stick
+    if not np.any(now):
+        return
+    k = r[now]
+    i = cons.contact[k]
+    n, u = cons.normal[k], cons.velocity[k]
+    rel = after.v[i] - u
+    after.v[i] -= rel - np.einsum("ij,ij->i", rel, n)[:, None] * n
+
+
+def inelastic(active: Planes, cons: Constraints, carried: np.ndarray, before: Any, after: Any,
+              restitution: float, masses: np.ndarray) -> float:
+    """Held contacts still approaching the obstacle at the end of the step take its normal velocity; those new
+    in this step that were approaching at its start leave with it less ``restitution`` times their approach
+    speed (velocities only: the positions stay on the planes). Only takes energy away (``restitution <= 1``).
+
+    Returns the work of these velocity changes against the obstacles' motion, J.
+    """
+    i, n, u = cons.contact, cons.normal, cons.velocity
+    target = np.einsum("ij,ij->i", u, n)
+    if restitution > 0:
+        w = np.einsum("ij,ij->i", before.v[i] - u, n)
+        bounce = ~np.isin(i, carried) & (w < 0)
+        target[bounce] -= restitution * w[bounce]
+        active.force[np.isin(active.idx, i[bounce])] = -1.0          # bouncing off: not carried
+    change = np.maximum(target - np.einsum("ij,ij->i", after.v[i], n), 0.0)
+    if not np.any(change):
+        return 0.0
+    dv = change[:, None] * n
+    after.v[i] += dv
+    return float(np.einsum("i,ij,ij->", masses[i], dv, u))
