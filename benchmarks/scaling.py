@@ -206,20 +206,26 @@ def thread_speedup(n: int, k: float, state: ic.simulator.State, steps: int, coun
             "speedup": med[counts[0]] / med[counts[-1]], "identical": bool(same), "steps": steps}
 
 
-def big_run(n: int, k: float, steps: int, warmup: int) -> dict:
-    """One size in a process of its own (``--big-worker``): ms/step (median), iterations, peak memory."""
+def big_run(n: int, k: float, steps: int, warmup: int, memory_gb: float) -> dict:
+    """One size in a process of its own (``--big-worker``): ms/step (median), iterations, peak memory. The
+    process may use at most ``memory_gb`` of address space (the machine is shared): beyond that it fails with
+    a MemoryError, reported in the row (``error``) instead of a time."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--big-worker", str(n), "--ks", str(k),
-           "--steps", str(steps), "--warmup", str(warmup)] + (["--adaptive"] if ADAPTIVE else [])
+           "--steps", str(steps), "--warmup", str(warmup), "--big-memory-gb", str(memory_gb)] + \
+        (["--adaptive"] if ADAPTIVE else [])
     proc = subprocess.run(cmd, capture_output=True, text=True)
     for line in proc.stdout.splitlines():
         if line.startswith("RESULT "):
             return json.loads(line[7:])
-    raise RuntimeError(f"--big-worker {n} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+    tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+    return {"resolution": n, "vertices": n * n, "k": k, "error": tail, "memory_limit_gb": memory_gb}
 
 
-def big_worker(n: int, k: float, steps: int, warmup: int) -> dict:
+def big_worker(n: int, k: float, steps: int, warmup: int, memory_gb: float) -> dict:
     import resource
 
+    limit = int(memory_gb * 2**30)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     t0 = time.perf_counter()
     sim = ic.Simulator(stiff(n, k), dt=H)
     setup = time.perf_counter() - t0
@@ -256,6 +262,34 @@ def _series(res: dict) -> list[tuple[str, str, str]]:
         accs = res.get("accelerators", ["numpy"]) if pc == "multigrid" else ["numpy"]
         for m, acc in enumerate(accs):
             out.append((pc, acc, pc if m == 0 else f"{pc}/{acc}"))
+    return out
+
+
+def _extra_tables(res: dict) -> list[str]:
+    """The large cloths' and the threads' tables."""
+    out: list[str] = []
+    if res.get("big"):
+        out += ["### Large cloths (one process each: ms/step, peak resident memory)", "",
+                "| grid | vertices | levels | ms/step | assembly | setup | solve | CG its (median) | set-up (s) | "
+                "peak memory (MB) |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for b in res["big"]:
+            if "error" in b:
+                out.append(f"| {b['resolution']}² | {b['vertices']} | - | not run: {b['error']} (address space "
+                           f"limited to {b['memory_limit_gb']:g} GB) | | | | | | |")
+                continue
+            out.append(f"| {b['resolution']}² | {b['vertices']} | {b['levels']} | {b['ms_step']:.0f} | "
+                       f"{b['ms_assembly']:.0f} | {b['ms_setup']:.0f} | {b['ms_solve']:.0f} | "
+                       f"{b['iterations_median']:.0f} | {b['setup_s']:.1f} | {b['peak_rss_mb']:.0f} |")
+        out.append("")
+    if res.get("threads"):
+        counts = list(res["threads"][0]["ms_step"])
+        out += ["### Solver threads (each step from the same state once per count, alternating)", "",
+                "| grid | " + " | ".join(f"ms/step, {c} thread(s)" for c in counts) + " | speed-up | same numbers |",
+                "|---|" + "---|" * (len(counts) + 2)]
+        for t in res["threads"]:
+            out.append(f"| {t['resolution']}² | " + " | ".join(f"{t['ms_step'][c]:.0f}" for c in counts)
+                       + f" | {t['speedup']:.2f}x | {'yes' if t['identical'] else 'no'} |")
+        out.append("")
     return out
 
 
@@ -298,24 +332,7 @@ def markdown(res: dict) -> str:
                                f"{a['ms_step'] / b['ms_step']:.2f}x | {a['iterations_median']:.0f} / "
                                f"{b['iterations_median']:.0f} |")
         out.append("")
-    if res.get("big"):
-        out += ["### Large cloths (one process each: ms/step, peak resident memory)", "",
-                "| grid | vertices | levels | ms/step | assembly | setup | solve | CG its (median) | set-up (s) | "
-                "peak memory (MB) |", "|---|---|---|---|---|---|---|---|---|---|"]
-        for b in res["big"]:
-            out.append(f"| {b['resolution']}² | {b['vertices']} | {b['levels']} | {b['ms_step']:.0f} | "
-                       f"{b['ms_assembly']:.0f} | {b['ms_setup']:.0f} | {b['ms_solve']:.0f} | "
-                       f"{b['iterations_median']:.0f} | {b['setup_s']:.1f} | {b['peak_rss_mb']:.0f} |")
-        out.append("")
-    if res.get("threads"):
-        counts = list(res["threads"][0]["ms_step"])
-        out += ["### Solver threads (each step from the same state once per count, alternating)", "",
-                "| grid | " + " | ".join(f"ms/step, {c} thread(s)" for c in counts) + " | speed-up | same numbers |",
-                "|---|" + "---|" * (len(counts) + 2)]
-        for t in res["threads"]:
-            out.append(f"| {t['resolution']}² | " + " | ".join(f"{t['ms_step'][c]:.0f}" for c in counts)
-                       + f" | {t['speedup']:.2f}x | {'yes' if t['identical'] else 'no'} |")
-        out.append("")
+    out += _extra_tables(res)
     if res["trajectory"]:
         out += ["### Default settings against tolerance 1e-8 (trajectory)", "",
                 "Control: the tolerance-1e-8 run started 1e-9 m away (random); when it drifts as far, "
@@ -347,7 +364,7 @@ def plot(res: dict, path: Path) -> None:
             N = [r["vertices"] for r in rows]
             ax.loglog(N, [r["ms_step"] for r in rows], style,
                       label=f"{pc} ({acc}), k={k:g} N/m" + (f" (N^{exp:.2f})" if exp is not None else ""))
-    big = res.get("big") or []
+    big = [b for b in res.get("big") or [] if "error" not in b]
     if big:
         ax.loglog([b["vertices"] for b in big], [b["ms_step"] for b in big], "o", mfc="none", color="C0",
                   label=f"multigrid, k={res['ks'][0]:g} N/m, own process")
@@ -377,15 +394,20 @@ def _extras(a, rows: list[dict], accelerators: list[str], exponents: dict) -> tu
     """The large sizes (own processes), the thread comparison and Blender's points (when asked for)."""
     big = []
     for n in a.big_sizes:
-        b = big_run(n, a.ks[0], a.big_steps, a.big_warmup)
+        b = big_run(n, a.ks[0], a.big_steps, a.big_warmup, a.big_memory_gb)
         big.append(b)
+        if "error" in b:
+            print(f"k={a.ks[0]:g} {n}² (own process): failed within {a.big_memory_gb:g} GB: {b['error']}", flush=True)
+            continue
         print(f"k={a.ks[0]:g} {n}² (own process): {b['ms_step']:.0f} ms/step, its {b['iterations_median']:.0f}, "
               f"peak {b['peak_rss_mb']:.0f} MB", flush=True)
-    if big:
+    done = [b for b in big if "error" not in b]
+    if done:
         pts = [(r["vertices"], r["ms_step"]) for r in rows if r["k"] == a.ks[0] and r["preconditioner"] == "multigrid"
-               and r["accelerator"] == accelerators[0]] + [(b["vertices"], b["ms_step"]) for b in big]
+               and r["accelerator"] == accelerators[0]] + [(b["vertices"], b["ms_step"]) for b in done]
         N, t = np.array(pts, dtype=float).T
-        exponents[f"multigrid@{a.ks[0]:g}, to {max(a.big_sizes)}²"] = float(np.polyfit(np.log(N), np.log(t), 1)[0])
+        top = max(b["resolution"] for b in done)
+        exponents[f"multigrid@{a.ks[0]:g}, to {top}²"] = float(np.polyfit(np.log(N), np.log(t), 1)[0])
     threads = []
     if len(a.threads) > 1:
         for n in a.thread_sizes:
@@ -436,6 +458,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="sizes run in a process each for ms/step and peak memory (e.g. 512 1024)")
     p.add_argument("--big-steps", type=int, default=3)
     p.add_argument("--big-warmup", type=int, default=3)
+    p.add_argument("--big-memory-gb", type=float, default=12.0,
+                   help="address-space limit of each --big-sizes process (a shared machine), GB")
     p.add_argument("--blender", default=str(ROOT / "benchmarks" / "results" / "vs_blender.json"),
                    help="vs_blender.py's JSON, whose hanging rows are drawn in the plot (if the file exists)")
     p.add_argument("--big-worker", type=int, default=None, help=argparse.SUPPRESS)
@@ -443,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     global ADAPTIVE
     ADAPTIVE = a.adaptive
     if a.big_worker is not None:
-        print("RESULT " + json.dumps(big_worker(a.big_worker, a.ks[0], a.steps, a.warmup)))
+        print("RESULT " + json.dumps(big_worker(a.big_worker, a.ks[0], a.steps, a.warmup, a.big_memory_gb)))
         return 0
     if a.quick:
         a.sizes, a.warmup, a.steps, a.slow_steps, a.error_samples = [8, 16], 2, 3, 3, 1
