@@ -17,8 +17,9 @@ from .shapes import MeshShape
 #: A held contact stays held while its vertex is within this multiple of the thickness of the obstacle.
 CONTACT_BAND = 1.25
 #: A contact whose impulse pulls its vertex towards the obstacle by more than this change of velocity (m/s)
-#: is released within the step (and the step solved again); lighter pulls are released from the next step on.
-PULL_SPEED = 0.01
+#: is released within the step (and the step solved again): a moving obstacle dragging the cloth back. Lighter
+#: pulls (where a resting cloth leaves the surface, about its weight) are released from the next step on.
+PULL_SPEED = 0.5
 #: New contacts violated by at most this fraction of the thickness do not call for another solve: they are
 #: held from the next step on, and the geometric response keeps them out in this one.
 RESOLVE_FRACTION = 0.1
@@ -172,8 +173,8 @@ class Collider:
                 break
             changed = False
             if len(active):
-                active, changed = self._after_solve(active, cons, si.constraint_impulse, new.v, h, carried,
-                                                    switched, released)
+                active, changed = self._after_solve(active, cons, si.constraint_impulse, new.v, h,
+                                                    carried if rnd == 0 else active.idx, switched, released)
             found = contacts.detect(self._frame(state, new), self.ctx.obstacles)
             if len(found):
                 info.contacts += int(np.count_nonzero(~np.isin(found.idx, active.idx)))
@@ -185,15 +186,16 @@ class Collider:
         return new, total, info, cons, active, t_solve
 
     def _after_solve(self, active: contacts.Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray,
-                     h: float, carried: np.ndarray, switched: np.ndarray,
+                     h: float, settled: np.ndarray, switched: np.ndarray,
                      released: np.ndarray) -> tuple[contacts.Planes, bool]:
         """Friction states and releases from a solve; whether the step must be solved again.
 
-        The friction changes of contacts new in this step are solved again, the others wait for the next
-        step; a contact pulling its vertex hard towards the obstacle is released now, lighter pulls next step.
+        The friction changes of contacts not in ``settled`` (after the first solve: the contacts the step did
+        not carry; after later ones: none) are solved again, the others wait for the next step; a contact
+        pulling its vertex hard towards the obstacle is released now, lighter pulls next step.
         """
         changed = friction.update(active, cons, J, v, h, self._mu[active.ob], switched)
-        again = bool(np.any(changed & ~np.isin(active.idx, carried)))
+        again = bool(np.any(changed & ~np.isin(active.idx, settled)))
         pull = (active.force * h < -PULL_SPEED * self.ctx.masses[active.idx]) & ~released[active.idx]
         if np.any(pull):
             released[active.idx[pull]] = True
