@@ -179,7 +179,7 @@ def test_a_towel_folded_onto_itself_by_moving_pins():
     scene = {"simulation": {"dt": 1 / 60, "duration": 1.2, "frame_rate": 30},
              "cloth": {"resolution": [n, n], "size": [0.6, 0.6], "plane": "xy", "center": [0.0, 0.0, 0.01],
                        "material": "cotton",
-                       "pins": [{"vertices": list(range(n * (n - 1), n * n)), "velocity": [0.0, -0.45, 0.06]}]},
+                       "pins": [{"vertices": list(range(n * (n - 1), n * n)), "velocity": [0.0, -0.5, 0.01]}]},
              "effects": {"gravity": [0.0, 0.0, -G]},
              "obstacles": [{"shape": "plane", "friction": 0.5}],
              "collision": {"thickness": TH, "self_collision": True}}
@@ -188,7 +188,7 @@ def test_a_towel_folded_onto_itself_by_moving_pins():
     xs = np.array([x for _, _, x in frames])
     assert np.all(np.isfinite(xs)) and xs[..., 2].min() >= 0.5 * TH
     # folded: the pinned edge now lies over the towel's far half, above it
-    assert xs[-1, n * (n - 1):, 1].mean() < 0.0
+    assert xs[-1, n * (n - 1):, 1].mean() < -0.2
     assert traj.report["self_collision"]["unresolved_steps"] == 0
     assert traj.report["self_collision"]["impacts"] + traj.report["self_collision"]["proximities"] > 0
 
