@@ -39,7 +39,10 @@ Writes ``OUT/scaling.json``, ``OUT/scaling.md`` and ``OUT/scaling.png``. Never a
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -51,6 +54,17 @@ from implicit_cloth.backend import resolve as resolve_accelerator
 from implicit_cloth.backend import set_default_accelerator
 
 H = 1 / 60
+#: ``--adaptive``: keep the default step control (a step redone with Newton iterations or halved when it
+#: breaks the energy balance or the strain bound); off by default here, so that a step is one solve
+ADAPTIVE = False
+
+
+def stiff(n: int, k: float, preconditioner: str = "multigrid", tolerance: float | None = None) -> dict:
+    """The hanging stiff cloth with this benchmark's step control (fixed steps unless ``--adaptive``)."""
+    d = hanging_stiff(n, k, preconditioner, tolerance)
+    if not ADAPTIVE:
+        d["simulation"]["adaptive"] = {"enabled": False}
+    return d
 
 
 def _direct_dv(sim: ic.Simulator) -> np.ndarray:
@@ -75,7 +89,7 @@ def time_steps(n: int, k: float, preconditioner: str, state: ic.simulator.State,
     the multigrid's implementation (numba or numpy; ``None``: the default)."""
     set_default_accelerator(accelerator)
     try:
-        sim = ic.Simulator(hanging_stiff(n, k, preconditioner), dt=H)
+        sim = ic.Simulator(stiff(n, k, preconditioner), dt=H)
     finally:
         set_default_accelerator(None)
     acc = getattr(sim.integrator.precond, "accelerator", "numpy")
@@ -126,7 +140,7 @@ def time_steps(n: int, k: float, preconditioner: str, state: ic.simulator.State,
 
 
 def warm_state(n: int, k: float, warmup: int) -> ic.simulator.State:
-    sim = ic.Simulator(hanging_stiff(n, k, "multigrid", 1e-8), dt=H)
+    sim = ic.Simulator(stiff(n, k, "multigrid", 1e-8), dt=H)
     sim.step(warmup)
     return sim.state.copy()
 
@@ -143,12 +157,12 @@ def trajectory_error(n: int, k: float, steps: int, perturbation: float = 1e-9, s
     """
     start = None
     if settle > 0:
-        pre = ic.Simulator(hanging_stiff(n, k, "multigrid", 1e-8), dt=H)
+        pre = ic.Simulator(stiff(n, k, "multigrid", 1e-8), dt=H)
         pre.step(int(round(settle / H)))
         start = (pre.positions.copy(), pre.velocities.copy())
     runs = {}
     for name, tol, eps in (("default", None, 0.0), ("tight", 1e-8, 0.0), ("perturbed", 1e-8, perturbation)):
-        sim = ic.Simulator(hanging_stiff(n, k, "multigrid", tol), dt=H)
+        sim = ic.Simulator(stiff(n, k, "multigrid", tol), dt=H)
         x0 = sim.positions if start is None else start[0]
         sim.positions = x0 + eps * np.random.default_rng(1).standard_normal(x0.shape)
         if start is not None:
@@ -160,6 +174,74 @@ def trajectory_error(n: int, k: float, steps: int, perturbation: float = 1e-9, s
     return {"resolution": n, "k": k, "steps": steps, "settle_s": settle, "max_displacement_m": disp,
             "max_deviation_m": dev, "relative": dev / disp if disp > 0 else 0.0, "perturbation_m": perturbation,
             "perturbed_relative": ctrl / disp if disp > 0 else 0.0}
+
+
+def thread_speedup(n: int, k: float, state: ic.simulator.State, steps: int, counts: list[int]) -> dict:
+    """Each step from the same state once per thread count, alternating (same machine state): ms/step
+    medians, the speed-up of the last count over the first, and whether every count gave the same state."""
+    from implicit_cloth import backend
+
+    sim = ic.Simulator(stiff(n, k), dt=H)
+    sim.positions, sim.velocities = state.x, state.v
+    sim.state.t = state.t
+    times: dict[int, list[float]] = {c: [] for c in counts}
+    same = True
+    try:
+        for _ in range(steps):
+            start = sim.state.copy()
+            ends = []
+            for c in counts:
+                backend.set_threads(c)
+                sim.state = start.copy()
+                sim._reset_history()
+                t0 = time.perf_counter()
+                sim.step(1)
+                times[c].append(time.perf_counter() - t0)
+                ends.append(sim.state.copy())
+            same &= all(np.array_equal(e.x, ends[0].x) and np.array_equal(e.v, ends[0].v) for e in ends)
+    finally:
+        backend.set_threads(None)
+    med = {c: 1e3 * statistics.median(t) for c, t in times.items()}
+    return {"resolution": n, "vertices": sim.model.n, "k": k, "ms_step": {str(c): med[c] for c in counts},
+            "speedup": med[counts[0]] / med[counts[-1]], "identical": bool(same), "steps": steps}
+
+
+def big_run(n: int, k: float, steps: int, warmup: int, memory_gb: float) -> dict:
+    """One size in a process of its own (``--big-worker``): ms/step (median), iterations, peak memory. The
+    process may use at most ``memory_gb`` of address space (the machine is shared): beyond that it fails with
+    a MemoryError, reported in the row (``error``) instead of a time."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--big-worker", str(n), "--ks", str(k),
+           "--steps", str(steps), "--warmup", str(warmup), "--big-memory-gb", str(memory_gb)] + \
+        (["--adaptive"] if ADAPTIVE else [])
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    tail = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+    return {"resolution": n, "vertices": n * n, "k": k, "error": tail, "memory_limit_gb": memory_gb}
+
+
+def big_worker(n: int, k: float, steps: int, warmup: int, memory_gb: float) -> dict:
+    import resource
+
+    limit = int(memory_gb * 2**30)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    t0 = time.perf_counter()
+    sim = ic.Simulator(stiff(n, k), dt=H)
+    setup = time.perf_counter() - t0
+    sim.step(warmup)
+    rows = []
+    for _ in range(steps):
+        c0 = time.perf_counter()
+        sim.step(1)
+        st = sim.last_step
+        rows.append((time.perf_counter() - c0, st.iterations, st.t_assembly, st.t_setup, st.t_solve))
+    med = lambda i: statistics.median(r[i] for r in rows)  # noqa: E731
+    return {"resolution": n, "vertices": sim.model.n, "k": k, "steps": steps, "warmup": warmup,
+            "ms_step": 1e3 * med(0), "iterations_median": med(1), "ms_assembly": 1e3 * med(2),
+            "ms_setup": 1e3 * med(3), "ms_solve": 1e3 * med(4), "setup_s": setup,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+            "levels": sim.integrator.precond.n_levels}
 
 
 def fit_exponent(rows: list[dict]) -> float | None:
@@ -183,8 +265,37 @@ def _series(res: dict) -> list[tuple[str, str, str]]:
     return out
 
 
+def _extra_tables(res: dict) -> list[str]:
+    """The large cloths' and the threads' tables."""
+    out: list[str] = []
+    if res.get("big"):
+        out += ["### Large cloths (one process each: ms/step, peak resident memory)", "",
+                "| grid | vertices | levels | ms/step | assembly | setup | solve | CG its (median) | set-up (s) | "
+                "peak memory (MB) |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for b in res["big"]:
+            if "error" in b:
+                out.append(f"| {b['resolution']}² | {b['vertices']} | - | not run: {b['error']} (address space "
+                           f"limited to {b['memory_limit_gb']:g} GB) | | | | | | |")
+                continue
+            out.append(f"| {b['resolution']}² | {b['vertices']} | {b['levels']} | {b['ms_step']:.0f} | "
+                       f"{b['ms_assembly']:.0f} | {b['ms_setup']:.0f} | {b['ms_solve']:.0f} | "
+                       f"{b['iterations_median']:.0f} | {b['setup_s']:.1f} | {b['peak_rss_mb']:.0f} |")
+        out.append("")
+    if res.get("threads"):
+        counts = list(res["threads"][0]["ms_step"])
+        out += ["### Solver threads (each step from the same state once per count, alternating)", "",
+                "| grid | " + " | ".join(f"ms/step, {c} thread(s)" for c in counts) + " | speed-up | same numbers |",
+                "|---|" + "---|" * (len(counts) + 2)]
+        for t in res["threads"]:
+            out.append(f"| {t['resolution']}² | " + " | ".join(f"{t['ms_step'][c]:.0f}" for c in counts)
+                       + f" | {t['speedup']:.2f}x | {'yes' if t['identical'] else 'no'} |")
+        out.append("")
+    return out
+
+
 def markdown(res: dict) -> str:
-    out = [f"Hanging stiff cloth, backward Euler dt = 1/60 s; steps {res['warmup']}-{res['warmup'] + res['steps']} "
+    steps = "adaptive step control" if res.get("adaptive") else "fixed steps (one solve each)"
+    out = [f"Hanging stiff cloth, backward Euler dt = 1/60 s, {steps}; steps {res['warmup']}-{res['warmup'] + res['steps']} "
            f"timed (median); {res['machine']['cpus']} cores, one BLAS thread. Default solver settings: "
            f"preconditioner {res['default_solver']['preconditioner']}, tolerance "
            f"{res['default_solver']['tolerance']:g}; multigrid implementation(s): "
@@ -221,6 +332,7 @@ def markdown(res: dict) -> str:
                                f"{a['ms_step'] / b['ms_step']:.2f}x | {a['iterations_median']:.0f} / "
                                f"{b['iterations_median']:.0f} |")
         out.append("")
+    out += _extra_tables(res)
     if res["trajectory"]:
         out += ["### Default settings against tolerance 1e-8 (trajectory)", "",
                 "Control: the tolerance-1e-8 run started 1e-9 m away (random); when it drifts as far, "
@@ -252,6 +364,16 @@ def plot(res: dict, path: Path) -> None:
             N = [r["vertices"] for r in rows]
             ax.loglog(N, [r["ms_step"] for r in rows], style,
                       label=f"{pc} ({acc}), k={k:g} N/m" + (f" (N^{exp:.2f})" if exp is not None else ""))
+    big = [b for b in res.get("big") or [] if "error" not in b]
+    if big:
+        ax.loglog([b["vertices"] for b in big], [b["ms_step"] for b in big], "o", mfc="none", color="C0",
+                  label=f"multigrid, k={res['ks'][0]:g} N/m, own process")
+    if res.get("blender"):
+        bl = res["blender"]
+        ax.loglog([b["vertices"] for b in bl], [b["ms_frame"] for b in bl], "kx-",
+                  label="Blender 3.4 (vs_blender.py hanging, k=1e3, ms/frame)")
+        ax.loglog([b["vertices"] for b in bl], [b["ours_ms_frame"] for b in bl], "k+--",
+                  label="ours on the same scene (vs_blender.py)")
     pc0, acc0, _ = _series(res)[0]
     rows = [r for r in res["rows"] if r["k"] == res["ks"][0] and r["preconditioner"] == pc0
             and r["accelerator"] == acc0]
@@ -266,6 +388,39 @@ def plot(res: dict, path: Path) -> None:
 
     atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=120))
     plt.close(fig)
+
+
+def _extras(a, rows: list[dict], accelerators: list[str], exponents: dict) -> tuple:
+    """The large sizes (own processes), the thread comparison and Blender's points (when asked for)."""
+    big = []
+    for n in a.big_sizes:
+        b = big_run(n, a.ks[0], a.big_steps, a.big_warmup, a.big_memory_gb)
+        big.append(b)
+        if "error" in b:
+            print(f"k={a.ks[0]:g} {n}² (own process): failed within {a.big_memory_gb:g} GB: {b['error']}", flush=True)
+            continue
+        print(f"k={a.ks[0]:g} {n}² (own process): {b['ms_step']:.0f} ms/step, its {b['iterations_median']:.0f}, "
+              f"peak {b['peak_rss_mb']:.0f} MB", flush=True)
+    done = [b for b in big if "error" not in b]
+    if done:
+        pts = [(r["vertices"], r["ms_step"]) for r in rows if r["k"] == a.ks[0] and r["preconditioner"] == "multigrid"
+               and r["accelerator"] == accelerators[0]] + [(b["vertices"], b["ms_step"]) for b in done]
+        N, t = np.array(pts, dtype=float).T
+        top = max(b["resolution"] for b in done)
+        exponents[f"multigrid@{a.ks[0]:g}, to {top}²"] = float(np.polyfit(np.log(N), np.log(t), 1)[0])
+    threads = []
+    if len(a.threads) > 1:
+        for n in a.thread_sizes:
+            th = thread_speedup(n, a.ks[0], warm_state(n, a.ks[0], a.warmup), a.thread_steps, a.threads)
+            threads.append(th)
+            print(f"k={a.ks[0]:g} {n}² threads {a.threads}: {th['ms_step']} ms/step, speed-up {th['speedup']:.2f}x, "
+                  f"identical {th['identical']}", flush=True)
+    blender = []
+    if a.blender and Path(a.blender).is_file():
+        vb = json.loads(Path(a.blender).read_text())
+        blender = [{"vertices": r["n"] ** 2, "ms_frame": r["blender_ms"], "ours_ms_frame": r["ours_ms"]}
+                   for r in vb["rows"] if r["scene"] == "hanging"]
+    return big, threads, blender
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -293,7 +448,27 @@ def main(argv: list[str] | None = None) -> int:
                         "tight run (the flat start's buckling amplifies any difference ~1e7 times)")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     p.add_argument("--quick", action="store_true", help="tiny sizes and few steps (CI smoke test)")
+    p.add_argument("--adaptive", action="store_true",
+                   help="keep the default adaptive step control (off here: one solve a step)")
+    p.add_argument("--threads", type=int, nargs="*", default=[],
+                   help="thread counts to compare at --thread-sizes, alternating from the same states (e.g. 1 2)")
+    p.add_argument("--thread-sizes", type=int, nargs="*", default=[128, 256])
+    p.add_argument("--thread-steps", type=int, default=10)
+    p.add_argument("--big-sizes", type=int, nargs="*", default=[],
+                   help="sizes run in a process each for ms/step and peak memory (e.g. 512 1024)")
+    p.add_argument("--big-steps", type=int, default=3)
+    p.add_argument("--big-warmup", type=int, default=3)
+    p.add_argument("--big-memory-gb", type=float, default=12.0,
+                   help="address-space limit of each --big-sizes process (a shared machine), GB")
+    p.add_argument("--blender", default=str(ROOT / "benchmarks" / "results" / "vs_blender.json"),
+                   help="vs_blender.py's JSON, whose hanging rows are drawn in the plot (if the file exists)")
+    p.add_argument("--big-worker", type=int, default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    global ADAPTIVE
+    ADAPTIVE = a.adaptive
+    if a.big_worker is not None:
+        print("RESULT " + json.dumps(big_worker(a.big_worker, a.ks[0], a.steps, a.warmup, a.big_memory_gb)))
+        return 0
     if a.quick:
         a.sizes, a.warmup, a.steps, a.slow_steps, a.error_samples = [8, 16], 2, 3, 3, 1
         a.trajectory_sizes, a.trajectory_settle = [8], [0.0, 0.1]
@@ -303,7 +478,7 @@ def main(argv: list[str] | None = None) -> int:
     for k in a.ks:
         for n in a.sizes:
             state = warm_state(n, k, a.warmup)
-            sim = ic.Simulator(hanging_stiff(n, k), dt=H)
+            sim = ic.Simulator(stiff(n, k), dt=H)
             sim.positions, sim.velocities = state.x, state.v
             sim.state.t = state.t
             ref0 = _direct_dv(sim)  # the first timed step's exact dv, shared by all preconditioners
@@ -336,10 +511,12 @@ def main(argv: list[str] | None = None) -> int:
                 traj.append(t)
                 print(f"trajectory k={k:g} {n}² from t={settle:g} s: deviation {t['relative']:.2e} of the "
                       f"displacement (1e-9 m start perturbation: {t['perturbed_relative']:.2e})", flush=True)
-    res = {"benchmark": "scaling", "quick": a.quick, "sizes": a.sizes, "ks": a.ks,
+    big, threads, blender = _extras(a, rows, accelerators, exponents)
+    res = {"benchmark": "scaling", "quick": a.quick, "sizes": a.sizes, "ks": a.ks, "adaptive": a.adaptive,
            "preconditioners": a.preconditioners, "accelerators": accelerators, "warmup": a.warmup, "steps": a.steps,
            "slow_steps": a.slow_steps, "default_solver": default_solver, "machine": machine(),
-           "rows": rows, "exponents": exponents, "trajectory": traj}
+           "rows": rows, "exponents": exponents, "trajectory": traj, "big": big, "threads": threads,
+           "blender": blender}
     md = markdown(res)
     out = Path(a.out)
     write_outputs(out, "scaling", res, md)

@@ -20,7 +20,9 @@ import numpy as np
 
 ACCELERATORS = ("auto", "numba", "numpy")
 _ENV = "IMPLICIT_CLOTH_ACCELERATOR"
+_THREADS_ENV = "IMPLICIT_CLOTH_THREADS"
 _default: str | None = None
+_threads: int | None = None
 
 
 def numba_available() -> bool:
@@ -45,6 +47,39 @@ def set_default_accelerator(name: str | None) -> None:
     """Set (or with ``None`` reset to the environment's) default accelerator for new preconditioners."""
     global _default
     _default = None if name is None else _check(name, "accelerator")
+
+
+def threads() -> int:
+    """Threads the compiled solver may use: :func:`set_threads`, else ``$IMPLICIT_CLOTH_THREADS``, else 1.
+
+    Only the numba back-end uses more than one, and only on multigrid levels of at least
+    :data:`implicit_cloth.solvers.multigrid.THREAD_MIN_VERTICES` vertices (the products, smoothing sweeps,
+    transfers and CG's updates; CG's dot products, the assembly and the Galerkin refresh stay serial). The
+    numbers are the same for every thread count: the chunks, not the threads, decide what is summed where, so a
+    run is reproducible bit for bit. One thread by default: on the shared 2-core test machine a second thread
+    was slower whenever other work held the other core (see docs/benchmarks.md). BLAS threads are a separate
+    setting (``Simulator(blas_threads=1)`` by default).
+    """
+    if _threads is not None:
+        return _threads
+    raw = os.environ.get(_THREADS_ENV, "").strip()
+    if raw:
+        try:
+            n = int(raw)
+        except ValueError:
+            raise ValueError(f"{_THREADS_ENV}: must be an integer >= 1, got {raw!r}") from None
+        if n < 1:
+            raise ValueError(f"{_THREADS_ENV}: must be an integer >= 1, got {raw!r}")
+        return n
+    return 1
+
+
+def set_threads(n: int | None) -> None:
+    """Set (or with ``None`` reset to the environment's) number of solver threads (see :func:`threads`)."""
+    global _threads
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
+        raise ValueError(f"threads: must be an integer >= 1, got {n!r}")
+    _threads = n
 
 
 def resolve(name: str | None = None) -> str:

@@ -101,6 +101,10 @@ class SolverReport(Record):
     mean_solves: float = 1.0
     #: most Newton iterations any step took
     max_newton_iterations: int = 1
+    #: threads the compiled solver could use (``implicit_cloth.backend.threads()``; 1 on the numpy path)
+    threads: int = 1
+    #: BLAS threads while stepping (``Simulator(blas_threads=...)``; None: not limited)
+    blas_threads: int | None = 1
 
 
 @dataclass

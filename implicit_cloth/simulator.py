@@ -14,6 +14,7 @@ import numpy as np
 
 from . import diagnostics
 from .adaptive import AdaptiveStats, StepController
+from .backend import threads
 from .config.validate import number as _number
 from .constraints import Constraints
 from .errors import DivergenceError, SolverWarning
@@ -570,6 +571,8 @@ class _Recorder:
                 "unconverged_steps": tot["unconverged_steps"],
                 "mean_solves": tot["solves"] / n,
                 "max_newton_iterations": tot["max_newton"],
+                "threads": threads() if getattr(integ.precond, "compiled", False) else 1,
+                "blas_threads": sim.blas_threads,
             }
             if tot["unconverged_steps"]:
                 warnings.warn(

@@ -65,3 +65,21 @@ def test_contact_energy_quick_via_cli(tmp_path):
     assert "| static | sphere | 12² |" in md and "Moving sphere" in md
     png = (tmp_path / "contact_energy.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+
+
+def test_vs_blender_skips_without_blender_and_its_worker_reports(tmp_path):
+    """Without Blender on PATH the comparison says so and exits 0; the worker that times our side prints one
+    RESULT record (a small cloth, fixed steps) with the fields the comparison reads."""
+    import os
+
+    env = dict(os.environ, PATH=str(Path(sys.executable).parent))       # no blender there
+    script = str(ROOT / "benchmarks" / "vs_blender.py")
+    out = subprocess.run([sys.executable, script, "--sizes", "8", "--out", str(tmp_path)], env=env,
+                         check=True, capture_output=True, text=True).stdout
+    assert "Blender is not installed, skipped" in out and not (tmp_path / "vs_blender.json").exists()
+    out = subprocess.run([sys.executable, script, "--worker", "--scenes", "drape", "--sizes", "8", "--fixed"],
+                         check=True, capture_output=True, text=True).stdout
+    res = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
+    assert res["scene"] == "drape" and res["n"] == 8 and res["fixed_steps"] is True and res["finite"]
+    assert res["ms_per_frame"] > 0 and res["iterations_per_frame"] > 0 and res["solves_per_frame"] >= 1
+    assert res["zmin"] > -0.35       # on the sphere (r = 0.3), not through it

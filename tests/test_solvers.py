@@ -401,3 +401,74 @@ def test_numba_fine_blocks_need_not_be_symmetric_themselves():
     dv, res = filtered_pcg(A, b, z, filt, mg, tol=1e-6)
     ref = _direct(A, b, z, filt)
     assert res.converged and np.linalg.norm(dv - ref) <= 1e-6 * np.linalg.norm(ref)
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_threads_give_the_same_numbers_and_match_a_direct_solve(monkeypatch):
+    """The threaded passes (every level threaded here) give the serial numbers to the last bit, for 1 and 2
+    threads, with pins and contact-like filters (sliding along a tilted normal, sticking); dv within the
+    tolerance of a direct solve, constrained components exact. Whole steps agree as well."""
+    from implicit_cloth import backend
+    from implicit_cloth.solvers import multigrid
+
+    monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES", 0)
+    sim = ic.Simulator(_scene(res=(30, 27)), dt=H)
+    m, A, b = _system(sim, steps=4)
+    z = np.random.default_rng(4).standard_normal(b.shape) * 0.01
+    nrm = np.array([0.3, -0.2, 0.93])
+    nrm /= np.linalg.norm(nrm)
+    slide = np.arange(100, 160)                                   # sliding: S = I - n n^T
+    stick = np.arange(400, 420)                                   # sticking: S = 0
+    PS = np.concatenate([np.broadcast_to(np.eye(3) - np.outer(nrm, nrm), (len(slide), 3, 3)),
+                         np.zeros((len(stick), 3, 3))])
+    filt = Filter(m.n, m.pinned, np.concatenate([slide, stick]), PS)
+    out = {}
+    try:
+        for th in (1, 2, 1):
+            backend.set_threads(th)
+            mg = make_preconditioner("multigrid", m, "numba")
+            mg.setup(None, filt)
+            assert mg.engine.lpar.all()
+            r = filt.apply(np.random.default_rng(2).standard_normal(b.shape))
+            v = mg.apply(r)
+            dv, res = filtered_pcg(m.system.csr, b, z, filt, mg, tol=1e-4, mass=np.repeat(m.masses, 3))
+            out.setdefault(th, []).append((v, dv, res.iterations))
+        for (v1, dv1, i1), (v2, dv2, i2) in ((out[1][0], out[2][0]), (out[1][0], out[1][1])):
+            assert np.array_equal(v1, v2) and np.array_equal(dv1, dv2) and i1 == i2
+        S = filt.matrices()
+        zc = z - np.einsum("nij,nj->ni", S, z.reshape(-1, 3)).ravel()
+        dv = out[2][0][1]
+        assert np.allclose(dv - np.einsum("nij,nj->ni", S, dv.reshape(-1, 3)).ravel(), zc, rtol=0, atol=1e-15)
+        # the reference: the filtered system S A S y = S (b - A zc), dv = zc + S y, solved directly
+        import scipy.sparse as sp
+
+        Sm = sp.block_diag(list(S), format="csr")
+        K = (Sm @ A @ Sm + sp.identity(3 * m.n) - Sm).tocsc()
+        ref = zc + Sm @ spla.spsolve(K, Sm @ (b - A @ zc))
+        assert np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= 1e-4
+        steps = {}
+        for th in (1, 2):
+            backend.set_threads(th)
+            s = ic.Simulator(_scene(res=(30, 27)), dt=H)
+            s.step(3)
+            steps[th] = s.positions.copy()
+        assert np.array_equal(steps[1], steps[2])
+    finally:
+        backend.set_threads(None)
+
+
+def test_thread_setting_is_checked(monkeypatch):
+    from implicit_cloth import backend
+
+    monkeypatch.setenv("IMPLICIT_CLOTH_THREADS", "2")
+    assert backend.threads() == 2
+    monkeypatch.setenv("IMPLICIT_CLOTH_THREADS", "two")
+    with pytest.raises(ValueError, match="IMPLICIT_CLOTH_THREADS: must be an integer >= 1, got 'two'"):
+        backend.threads()
+    with pytest.raises(ValueError, match="threads: must be an integer >= 1, got 0"):
+        backend.set_threads(0)
+    backend.set_threads(1)
+    try:
+        assert backend.threads() == 1
+    finally:
+        backend.set_threads(None)

@@ -31,14 +31,17 @@ no reassociation, NaN and infinity kept): the V-cycle got 12-18 % faster at 128Â
 Every function is compiled with ``cache=True`` (the compiled code is stored
 next to this file in ``__pycache__``), so the compilation (25-50 s on the
 2-core test machine) is paid once per installation, not per run.
-Single-threaded: a multi-threaded variant (``prange``, two threads) was
-measured 1.3-14x *slower* per step on the shared 2-core machine and dropped.
+Threads (:func:`implicit_cloth.backend.threads`, one by default): the passes of levels of at least
+``multigrid.THREAD_MIN_VERTICES`` vertices run on numba threads (``prange``) over a fixed number of
+chunks, each writing only its own rows (:func:`_psymmv`: a stored block between two chunks is read by
+both, each taking its side), so the numbers are the same, to the last bit, for every thread count and
+as serially; CG's dot products stay serial for the same reason.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from . import estimate
 
@@ -61,9 +64,9 @@ def filter_vec(cidx_list, Sc, x):
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
-def _diag_product(dg, x, y):
-    """``y = D x`` for the diagonal blocks ``dg`` (n, 3, 3): the start of every symmetric product."""
-    for i in range(len(dg)):
+def _diag_rows(dg, x, y, lo, hi):
+    """``y[i] = D_i x_i`` for the vertices ``lo:hi``."""
+    for i in range(lo, hi):
         d = dg[i]
         x0 = x[3 * i]
         x1 = x[3 * i + 1]
@@ -73,6 +76,53 @@ def _diag_product(dg, x, y):
         y[3 * i + 2] = d[2, 0] * x0 + d[2, 1] * x1 + d[2, 2] * x2
 
 
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _diag_product(dg, x, y):
+    """``y = D x`` for the diagonal blocks ``dg`` (n, 3, 3): the start of every symmetric product."""
+    _diag_rows(dg, x, y, 0, len(dg))
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _block_row_side(s, i, j, x, y):
+    """``y_i += B x_j`` for the stored block ``B = s`` (3, 3) at ``(i, j)``."""
+    xj0 = x[3 * j]
+    xj1 = x[3 * j + 1]
+    xj2 = x[3 * j + 2]
+    y[3 * i] += s[0, 0] * xj0 + s[0, 1] * xj1 + s[0, 2] * xj2
+    y[3 * i + 1] += s[1, 0] * xj0 + s[1, 1] * xj1 + s[1, 2] * xj2
+    y[3 * i + 2] += s[2, 0] * xj0 + s[2, 1] * xj1 + s[2, 2] * xj2
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _block_col_side(s, i, j, x, y):
+    """``y_j += B^T x_i`` for the stored block ``B = s`` (3, 3) at ``(i, j)``."""
+    xi0 = x[3 * i]
+    xi1 = x[3 * i + 1]
+    xi2 = x[3 * i + 2]
+    y[3 * j] += s[0, 0] * xi0 + s[1, 0] * xi1 + s[2, 0] * xi2
+    y[3 * j + 1] += s[0, 1] * xi0 + s[1, 1] * xi1 + s[2, 1] * xi2
+    y[3 * j + 2] += s[0, 2] * xi0 + s[1, 2] * xi1 + s[2, 2] * xi2
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _block6_both(s, i, j, x, y, row, col):
+    b00, b01, b02, b11, b12, b22 = s[0], s[1], s[2], s[3], s[4], s[5]
+    if row:
+        xj0 = x[3 * j]
+        xj1 = x[3 * j + 1]
+        xj2 = x[3 * j + 2]
+        y[3 * i] += b00 * xj0 + b01 * xj1 + b02 * xj2
+        y[3 * i + 1] += b01 * xj0 + b11 * xj1 + b12 * xj2
+        y[3 * i + 2] += b02 * xj0 + b12 * xj1 + b22 * xj2
+    if col:
+        xi0 = x[3 * i]
+        xi1 = x[3 * i + 1]
+        xi2 = x[3 * i + 2]
+        y[3 * j] += b00 * xi0 + b01 * xi1 + b02 * xi2
+        y[3 * j + 1] += b01 * xi0 + b11 * xi1 + b12 * xi2
+        y[3 * j + 2] += b02 * xi0 + b12 * xi1 + b22 * xi2
+
+
 @njit(cache=True, fastmath={"contract"})
 def _symmv(dg, uI, uJ, uv, x, y):
     """``y = A x`` for a symmetric block matrix stored as its diagonal blocks ``dg`` (n, 3, 3) and its upper
@@ -80,21 +130,8 @@ def _symmv(dg, uI, uJ, uv, x, y):
     off-diagonal block serves both of its products, so one pass reads half the matrix."""
     _diag_product(dg, x, y)
     for k in range(len(uI)):
-        i = uI[k]
-        j = uJ[k]
-        s = uv[k]
-        xj0 = x[3 * j]
-        xj1 = x[3 * j + 1]
-        xj2 = x[3 * j + 2]
-        xi0 = x[3 * i]
-        xi1 = x[3 * i + 1]
-        xi2 = x[3 * i + 2]
-        y[3 * i] += s[0, 0] * xj0 + s[0, 1] * xj1 + s[0, 2] * xj2
-        y[3 * i + 1] += s[1, 0] * xj0 + s[1, 1] * xj1 + s[1, 2] * xj2
-        y[3 * i + 2] += s[2, 0] * xj0 + s[2, 1] * xj1 + s[2, 2] * xj2
-        y[3 * j] += s[0, 0] * xi0 + s[1, 0] * xi1 + s[2, 0] * xi2
-        y[3 * j + 1] += s[0, 1] * xi0 + s[1, 1] * xi1 + s[2, 1] * xi2
-        y[3 * j + 2] += s[0, 2] * xi0 + s[1, 2] * xi1 + s[2, 2] * xi2
+        _block_row_side(uv[k], uI[k], uJ[k], x, y)
+        _block_col_side(uv[k], uI[k], uJ[k], x, y)
 
 
 @njit(cache=True, fastmath={"contract"})
@@ -103,22 +140,51 @@ def _symmv6(dg, uI, uJ, u6, x, y):
     ``(B00, B01, B02, B11, B12, B22)``: a third less data again (spring blocks ``alpha I + beta u u^T``)."""
     _diag_product(dg, x, y)
     for k in range(len(uI)):
-        i = uI[k]
-        j = uJ[k]
-        s = u6[k]
-        b00, b01, b02, b11, b12, b22 = s[0], s[1], s[2], s[3], s[4], s[5]
-        xj0 = x[3 * j]
-        xj1 = x[3 * j + 1]
-        xj2 = x[3 * j + 2]
-        xi0 = x[3 * i]
-        xi1 = x[3 * i + 1]
-        xi2 = x[3 * i + 2]
-        y[3 * i] += b00 * xj0 + b01 * xj1 + b02 * xj2
-        y[3 * i + 1] += b01 * xj0 + b11 * xj1 + b12 * xj2
-        y[3 * i + 2] += b02 * xj0 + b12 * xj1 + b22 * xj2
-        y[3 * j] += b00 * xi0 + b01 * xi1 + b02 * xi2
-        y[3 * j + 1] += b01 * xi0 + b11 * xi1 + b12 * xi2
-        y[3 * j + 2] += b02 * xi0 + b12 * xi1 + b22 * xi2
+        _block6_both(u6[k], uI[k], uJ[k], x, y, True, True)
+
+
+@njit(cache=True, fastmath={"contract"}, parallel=True)
+def _psymmv(dg, uI, uJ, uv, u6, use6, vb, kb, ip, ib, x, y):
+    """:func:`_symmv` (:func:`_symmv6` with ``use6``) on threads, with the same result to the last bit.
+
+    The vertices are cut into chunks ``vb[c]:vb[c+1]`` and chunk c writes only its own rows of ``y``: its
+    diagonal blocks; the stored blocks ``(j, i)`` of earlier rows whose column is its own, the listed
+    ``ib[ip[c]:ip[c+1]]`` (ascending), on their column side; then its own rows' blocks ``kb[c]:kb[c+1]``
+    (the blocks are sorted by row), on both sides when the column is its own too. Every ``y_i`` thus
+    receives the same terms in the same order as in the serial pass, whatever the number of threads.
+    """
+    for c in prange(len(vb) - 1):
+        v1 = vb[c + 1]
+        _diag_rows(dg, x, y, vb[c], v1)
+        for m in range(ip[c], ip[c + 1]):
+            k = ib[m]
+            if use6:
+                _block6_both(u6[k], uI[k], uJ[k], x, y, False, True)
+            else:
+                _block_col_side(uv[k], uI[k], uJ[k], x, y)
+        for k in range(kb[c], kb[c + 1]):
+            i = uI[k]
+            j = uJ[k]
+            if use6:
+                _block6_both(u6[k], i, j, x, y, True, j < v1)
+            else:
+                _block_row_side(uv[k], i, j, x, y)
+                if j < v1:
+                    _block_col_side(uv[k], i, j, x, y)
+
+
+@njit(cache=True, fastmath={"contract"})
+def _msymmv(dg, uI, uJ, uv, u6, use6, part, x, y):
+    """``y = A x`` serially, or on threads when ``part`` (a level's chunks, :func:`_psymmv`) is given:
+    ``part = (vb, kb, ip, ib)``, empty ``vb`` for the serial pass. Both give the same numbers."""
+    vb, kb, ip, ib = part
+    if len(vb) == 0:
+        if use6:
+            _symmv6(dg, uI, uJ, u6, x, y)
+        else:
+            _symmv(dg, uI, uJ, uv, x, y)
+    else:
+        _psymmv(dg, uI, uJ, uv, u6, use6, vb, kb, ip, ib, x, y)
 
 
 @njit(cache=True)
@@ -140,20 +206,17 @@ def gather_sym6(src, idx, out6):
 
 
 @njit(cache=True, fastmath={"contract"})
-def _fsymmv(dg, uI, uJ, uv, u6, use6, clist, Sc, ws, x, y):
+def _fsymmv(dg, uI, uJ, uv, u6, use6, clist, Sc, ws, x, y, part):
     """``y = (S A S + I - S) x``, the filtered matrix (``x`` is filtered in place for the product and
     restored; ``ws`` holds ``3 len(clist)`` numbers of scratch); with ``use6`` the upper blocks are read
-    from their symmetric six-number copy ``u6`` (:func:`_symmv6`)."""
+    from their symmetric six-number copy ``u6`` (:func:`_symmv6`); ``part``: see :func:`_msymmv`."""
     nc = len(clist)
     for c in range(nc):
         i = clist[c]
         x0, x1, x2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
         ws[3 * c], ws[3 * c + 1], ws[3 * c + 2] = x0, x1, x2
         x[3 * i], x[3 * i + 1], x[3 * i + 2] = _filt3(Sc, c, x0, x1, x2)
-    if use6:
-        _symmv6(dg, uI, uJ, u6, x, y)
-    else:
-        _symmv(dg, uI, uJ, uv, x, y)
+    _msymmv(dg, uI, uJ, uv, u6, use6, part, x, y)
     for c in range(nc):
         i = clist[c]
         x0, x1, x2 = ws[3 * c], ws[3 * c + 1], ws[3 * c + 2]
@@ -165,60 +228,111 @@ def _fsymmv(dg, uI, uJ, uv, u6, use6, clist, Sc, ws, x, y):
         y[3 * i + 2] = a2 + x2 - s2
 
 
-@njit(cache=True, fastmath={"contract"})
-def _presmooth(dinv, omega, b, x):
-    """Pre-smoothing from zero: ``x = omega D^-1 b``."""
-    n = len(dinv)
-    for i in range(n):
-        d = dinv[i]
-        b0, b1, b2 = b[3 * i], b[3 * i + 1], b[3 * i + 2]
-        x[3 * i] = omega * (d[0, 0] * b0 + d[0, 1] * b1 + d[0, 2] * b2)
-        x[3 * i + 1] = omega * (d[1, 0] * b0 + d[1, 1] * b1 + d[1, 2] * b2)
-        x[3 * i + 2] = omega * (d[2, 0] * b0 + d[2, 1] * b1 + d[2, 2] * b2)
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _presmooth_row(dinv, omega, b, x, i):
+    d = dinv[i]
+    b0, b1, b2 = b[3 * i], b[3 * i + 1], b[3 * i + 2]
+    x[3 * i] = omega * (d[0, 0] * b0 + d[0, 1] * b1 + d[0, 2] * b2)
+    x[3 * i + 1] = omega * (d[1, 0] * b0 + d[1, 1] * b1 + d[1, 2] * b2)
+    x[3 * i + 2] = omega * (d[2, 0] * b0 + d[2, 1] * b1 + d[2, 2] * b2)
+
+
+@njit(cache=True, fastmath={"contract"}, parallel=True)
+def _ppresmooth(dinv, omega, b, x):
+    for i in prange(len(dinv)):
+        _presmooth_row(dinv, omega, b, x, i)
 
 
 @njit(cache=True, fastmath={"contract"})
-def _sub(b, y):
-    """``y <- b - y``."""
-    for k in range(len(y)):
+def _presmooth(dinv, omega, b, x, par):
+    """Pre-smoothing from zero: ``x = omega D^-1 b`` (on threads with ``par``: the same numbers)."""
+    if par:
+        _ppresmooth(dinv, omega, b, x)
+    else:
+        for i in range(len(dinv)):
+            _presmooth_row(dinv, omega, b, x, i)
+
+
+@njit(cache=True, fastmath={"contract"}, parallel=True)
+def _psub(b, y):
+    for k in prange(len(y)):
         y[k] = b[k] - y[k]
 
 
 @njit(cache=True, fastmath={"contract"})
-def _transfer(ptr, idx, val, x, y, add):
-    """``y (+)= M x`` for a node-level CSR ``M`` (``P`` to prolong, ``P^T`` to restrict) acting on 3-vectors."""
-    n = len(ptr) - 1
-    for i in range(n):
-        y0 = 0.0
-        y1 = 0.0
-        y2 = 0.0
-        for m in range(ptr[i], ptr[i + 1]):
-            J = idx[m]
-            w = val[m]
-            y0 += w * x[3 * J]
-            y1 += w * x[3 * J + 1]
-            y2 += w * x[3 * J + 2]
-        if add:
-            y[3 * i] += y0
-            y[3 * i + 1] += y1
-            y[3 * i + 2] += y2
-        else:
-            y[3 * i] = y0
-            y[3 * i + 1] = y1
-            y[3 * i + 2] = y2
+def _sub(b, y, par=False):
+    """``y <- b - y``."""
+    if par:
+        _psub(b, y)
+    else:
+        for k in range(len(y)):
+            y[k] = b[k] - y[k]
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _transfer_row(ptr, idx, val, x, y, add, i):
+    y0 = 0.0
+    y1 = 0.0
+    y2 = 0.0
+    for m in range(ptr[i], ptr[i + 1]):
+        J = idx[m]
+        w = val[m]
+        y0 += w * x[3 * J]
+        y1 += w * x[3 * J + 1]
+        y2 += w * x[3 * J + 2]
+    if add:
+        y[3 * i] += y0
+        y[3 * i + 1] += y1
+        y[3 * i + 2] += y2
+    else:
+        y[3 * i] = y0
+        y[3 * i + 1] = y1
+        y[3 * i + 2] = y2
+
+
+@njit(cache=True, fastmath={"contract"}, parallel=True)
+def _ptransfer(ptr, idx, val, x, y, add):
+    for i in prange(len(ptr) - 1):
+        _transfer_row(ptr, idx, val, x, y, add, i)
 
 
 @njit(cache=True, fastmath={"contract"})
-def _smooth(dinv, omega, b, x, y):
-    """Post-smoothing update from ``y = A x``: ``y <- x + omega D^-1 (b - y)`` (in place in ``y``)."""
-    for i in range(len(dinv)):
-        d = dinv[i]
-        r0 = b[3 * i] - y[3 * i]
-        r1 = b[3 * i + 1] - y[3 * i + 1]
-        r2 = b[3 * i + 2] - y[3 * i + 2]
-        y[3 * i] = x[3 * i] + omega * (d[0, 0] * r0 + d[0, 1] * r1 + d[0, 2] * r2)
-        y[3 * i + 1] = x[3 * i + 1] + omega * (d[1, 0] * r0 + d[1, 1] * r1 + d[1, 2] * r2)
-        y[3 * i + 2] = x[3 * i + 2] + omega * (d[2, 0] * r0 + d[2, 1] * r1 + d[2, 2] * r2)
+def _transfer(ptr, idx, val, x, y, add, par):
+    """``y (+)= M x`` for a node-level CSR ``M`` (``P`` to prolong, ``P^T`` to restrict) acting on 3-vectors
+    (rows on threads with ``par``: the same numbers)."""
+    if par:
+        _ptransfer(ptr, idx, val, x, y, add)
+    else:
+        for i in range(len(ptr) - 1):
+            _transfer_row(ptr, idx, val, x, y, add, i)
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _smooth_row(dinv, omega, b, x, y, i):
+    d = dinv[i]
+    r0 = b[3 * i] - y[3 * i]
+    r1 = b[3 * i + 1] - y[3 * i + 1]
+    r2 = b[3 * i + 2] - y[3 * i + 2]
+    y[3 * i] = x[3 * i] + omega * (d[0, 0] * r0 + d[0, 1] * r1 + d[0, 2] * r2)
+    y[3 * i + 1] = x[3 * i + 1] + omega * (d[1, 0] * r0 + d[1, 1] * r1 + d[1, 2] * r2)
+    y[3 * i + 2] = x[3 * i + 2] + omega * (d[2, 0] * r0 + d[2, 1] * r1 + d[2, 2] * r2)
+
+
+@njit(cache=True, fastmath={"contract"}, parallel=True)
+def _psmooth(dinv, omega, b, x, y):
+    for i in prange(len(dinv)):
+        _smooth_row(dinv, omega, b, x, y, i)
+
+
+@njit(cache=True, fastmath={"contract"})
+def _smooth(dinv, omega, b, x, y, par):
+    """Post-smoothing update from ``y = A x``: ``y <- x + omega D^-1 (b - y)`` (in place in ``y``; on threads
+    with ``par``: the same numbers)."""
+    if par:
+        _psmooth(dinv, omega, b, x, y)
+    else:
+        for i in range(len(dinv)):
+            _smooth_row(dinv, omega, b, x, y, i)
 
 
 @njit(cache=True, fastmath={"contract"})
@@ -258,10 +372,19 @@ def _cg_update(dv, r, p, q, alpha, mass, use_mass):
     return dd, rmr, dmd
 
 
-@njit(cache=True, fastmath={"contract"})
-def _p_update(p, s, beta):
-    for k in range(len(p)):
+@njit(cache=True, fastmath={"contract"}, parallel=True)
+def _pp_update(p, s, beta):
+    for k in prange(len(p)):
         p[k] = beta * p[k] + s[k]
+
+
+@njit(cache=True, fastmath={"contract"})
+def _p_update(p, s, beta, par):
+    if par:
+        _pp_update(p, s, beta)
+    else:
+        for k in range(len(p)):
+            p[k] = beta * p[k] + s[k]
 
 
 @njit(cache=True, fastmath={"contract"})
@@ -294,18 +417,32 @@ def _lev(l, dg, uI, uJ, uv, voff, uoff):
 
 
 @njit(cache=True, fastmath={"contract"})
-def _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y):
-    """``y = A_l x`` (the filtered matrix on the finest level, whose upper blocks may come from ``u6``)."""
+def _part(l, lpar, lpv, lpb, pbb):
+    """Level l's chunks for :func:`_msymmv` (empty bounds: the serial pass): vertex bounds, block-row bounds,
+    offsets of the chunks' incoming column blocks and their list (:func:`_psymmv`)."""
+    K = len(lpv) // (2 * len(lpar))
+    o = 2 * l * K
+    if lpar[l]:
+        return lpv[o:o + K], lpv[o + K:o + 2 * K], lpb[l * K:(l + 1) * K], pbb
+    return lpv[0:0], lpv[0:0], lpb[0:0], pbb
+
+
+@njit(cache=True, fastmath={"contract"})
+def _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, lpar, lpv, lpb, pbb):
+    """``y = A_l x`` (the filtered matrix on the finest level, whose upper blocks may come from ``u6``),
+    on threads when ``lpar[l]``."""
     d, i, j, u = _lev(l, dg, uI, uJ, uv, voff, uoff)
+    part = _part(l, lpar, lpv, lpb, pbb)
     if l == 0:
-        _fsymmv(d, i, j, u, u6, use6, clist, Sc, ws, x, y)
+        _fsymmv(d, i, j, u, u6, use6, clist, Sc, ws, x, y, part)
     else:
-        _symmv(d, i, j, u, x, y)
+        _msymmv(d, i, j, u, u6, False, part, x, y)
 
 
 @njit(cache=True, fastmath={"contract"})
 def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
-           pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, wb, wx, wr):
+           pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
+           wb, wx, wr):
     """One V-cycle of the filtered hierarchy: ``out = M^-1 b`` (``b`` the fine residual).
 
     Level l (0 finest, L = len(voff) - 2 coarsest) has ``n_l = voff[l+1] - voff[l]``
@@ -319,6 +456,10 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
     (local), entries ``pnnz[l]:pnnz[l+1]`` of ``pidx``/``pval``; its transpose likewise in
     ``t*`` (rows ``toff[l]:toff[l] + n_{l+1} + 1``, the same entry range).
     ``dinv[voff[l]:voff[l+1]]`` are level l's inverted (filtered) diagonal blocks.
+
+    Threads: level l's passes run on threads when ``lpar[l]`` (its products chunked as in
+    :func:`_psymmv`: ``lpv``/``lpb`` hold K chunk bounds and block-list offsets per level, the lists in
+    ``pbb``; its vector passes split by rows); the numbers are the same as serially.
     """
     L = len(voff) - 2
     if L == 0:                                         # a single level: solved directly
@@ -333,10 +474,11 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
         tp = tptr[toff[l]:toff[l] + nc + 1]
         ti = tidx[pnnz[l]:pnnz[l + 1]]
         tv = tval[pnnz[l]:pnnz[l + 1]]
-        _presmooth(d, omega, bl, x)
-        _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, r)
-        _sub(bl, r)
-        _transfer(tp, ti, tv, r, wb[3 * voff[l + 1]:3 * voff[l + 2]], False)
+        par = bool(lpar[l])
+        _presmooth(d, omega, bl, x, par)
+        _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, r, lpar, lpv, lpb, pbb)
+        _sub(bl, r, par)
+        _transfer(tp, ti, tv, r, wb[3 * voff[l + 1]:3 * voff[l + 2]], False, bool(lpar[l + 1]))
     _coarse_solve(C, upper, wb[3 * voff[L]:3 * voff[L + 1]], wx[3 * voff[L]:3 * voff[L + 1]])
     for l in range(L - 1, -1, -1):
         n = voff[l + 1] - voff[l]
@@ -348,21 +490,24 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
         pp = pptr[poff[l]:poff[l] + n + 1]
         pi = pidx[pnnz[l]:pnnz[l + 1]]
         pv = pval[pnnz[l]:pnnz[l + 1]]
-        _transfer(pp, pi, pv, xc, x, True)
-        _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y)
-        _smooth(d, omega, bl, x, y)
+        par = bool(lpar[l])
+        _transfer(pp, pi, pv, xc, x, True, par)
+        _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, lpar, lpv, lpb, pbb)
+        _smooth(d, omega, bl, x, y, par)
 
 
 @njit(cache=True, fastmath={"contract"})
 def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, dinv,
-        pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega,
+        pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
         b, z, guess, use_guess, mass, use_mass, tol, max_iterations, bound_only, min_delay, delay_fraction):
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
 
     ``adg``, ``auI``, ``auJ``, ``auv``: the fine matrix (unfiltered, float64, symmetric storage of
     :func:`_symmv`) that CG multiplies by (its upper blocks from ``au6`` with ``use6``); the V-cycle's packed
     hierarchy (:func:`vcycle`) may hold its
-    own (float32) copy of it as level 0.
+    own (float32) copy of it as level 0. ``lpar``, ...: the threads' chunks (:func:`vcycle`); CG's products
+    and its updates without a sum run on threads when the finest level's do, its dot products serially, so
+    the iterates are the same whatever the number of threads.
 
     Returns ``(dv, iterations, residual, converged, error)``.
     """
@@ -379,22 +524,25 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
         s0, s1, s2 = _filt3(Sc, c, z0, z1, z2)
         dv[3 * i], dv[3 * i + 1], dv[3 * i + 2] = z0 - s0, z1 - s1, z2 - s2
     r = np.empty(N)
-    _symmv(adg, auI, auJ, auv, dv, r)
-    _sub(b, r)
+    part = _part(0, lpar, lpv, lpb, pbb)
+    par = bool(lpar[0])
+    _msymmv(adg, auI, auJ, auv, au6, False, part, dv, r)
+    _sub(b, r, par)
     filter_vec(clist, Sc, r)
     norm0 = np.sqrt(_dot(r, r))
     if use_guess:
         g = guess.copy()
         filter_vec(clist, Sc, g)
         dv += g
-        _symmv(adg, auI, auJ, auv, dv, r)
-        _sub(b, r)
+        _msymmv(adg, auI, auJ, auv, au6, False, part, dv, r)
+        _sub(b, r, par)
         filter_vec(clist, Sc, r)
     if norm0 == 0.0:
         return dv, 0, 0.0, True, 0.0
     s = np.empty(N)
     vcycle(r, s, dg, uI, uJ, uv, au6, use6, voff, uoff, clist, Sc, ws, dinv,
-           pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, wb, wx, wr)
+           pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
+           wb, wx, wr)
     filter_vec(clist, Sc, s)
     p = s.copy()
     q = np.empty(N)
@@ -407,7 +555,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
     it = 0
     while not converged and it < max_iterations:
         # p is filtered, so S A S p + (I - S) p = S A p: the filtered product
-        _fsymmv(adg, auI, auJ, auv, au6, use6, clist, Sc, ws, p, q)
+        _fsymmv(adg, auI, auJ, auv, au6, use6, clist, Sc, ws, p, q, part)
         pq, pp = _dot2(p, q)
         if pq <= 0.0:
             break
@@ -417,7 +565,8 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
         pw[it] = pp / pq
         it += 1
         vcycle(r, s, dg, uI, uJ, uv, au6, use6, voff, uoff, clist, Sc, ws, dinv,
-               pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, wb, wx, wr)
+               pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
+           wb, wx, wr)
         filter_vec(clist, Sc, s)
         delta_new = _dot(r, s)
         if delta_new <= 1e-30 * delta0:
@@ -433,13 +582,38 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
                 converged = error <= tol
         if not converged:
             beta = delta_new / delta
-            _p_update(p, s, beta)
+            _p_update(p, s, beta, par)
         delta = delta_new
-    _symmv(adg, auI, auJ, auv, dv, q)
-    _sub(b, q)
+    _msymmv(adg, auI, auJ, auv, au6, False, part, dv, q)
+    _sub(b, q, par)
     filter_vec(clist, Sc, q)
     res = np.sqrt(_dot(q, q)) / norm0
     return dv, it, res, converged, error
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _filtered_block(src, o, Sc, ci, cj, diag, out):
+    """``out = S_i B S_j`` (plus ``I - S_i`` when ``diag``) for the flat block ``B = src[o:o + 9]``; ``ci``,
+    ``cj``: the positions of its row and column vertex in the filters ``Sc`` (-1: a free vertex, ``S = I``)."""
+    for k in range(9):
+        out[k] = src[o + k]
+    if ci >= 0:                                      # rows: S_i B
+        s = Sc[ci]
+        for b in range(3):
+            t0, t1, t2 = out[b], out[3 + b], out[6 + b]
+            for a in range(3):
+                out[3 * a + b] = s[a, 0] * t0 + s[a, 1] * t1 + s[a, 2] * t2
+    if cj >= 0:                                      # columns: (S_i B) S_j
+        s = Sc[cj]
+        for a in range(3):
+            t0, t1, t2 = out[3 * a], out[3 * a + 1], out[3 * a + 2]
+            for b in range(3):
+                out[3 * a + b] = t0 * s[0, b] + t1 * s[1, b] + t2 * s[2, b]
+    if diag and ci >= 0:                             # + (I - S_i): the constrained directions' identity
+        s = Sc[ci]
+        for a in range(3):
+            for b in range(3):
+                out[3 * a + b] += (1.0 if a == b else 0.0) - s[a, b]
 
 
 @njit(cache=True, fastmath={"contract"})
@@ -487,6 +661,53 @@ def galerkin(sd, su, od, ou, d_ptr, d_dst, d_w, u_ptr, u_dst, u_w):
                 for a in range(3):
                     for b in range(3):
                         od[t + 3 * a + b] += w * (su[o + 3 * a + b] + su[o + 3 * b + a])
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _gal_add(B, dst, w, od, ou):
+    """One Galerkin entry of :func:`galerkin`: the flat block ``B`` times ``w`` into the coarse block and way
+    packed in ``dst = 4 t + mode``."""
+    t = 9 * (dst >> 2)
+    m = dst & 3
+    if m == 3:
+        for k in range(9):
+            od[t + k] += w * B[k]
+    elif m == 0:
+        for k in range(9):
+            ou[t + k] += w * B[k]
+    elif m == 1:
+        for a in range(3):
+            for b in range(3):
+                ou[t + 3 * a + b] += w * B[3 * b + a]
+    else:
+        for a in range(3):
+            for b in range(3):
+                od[t + 3 * a + b] += w * (B[3 * a + b] + B[3 * b + a])
+
+
+@njit(cache=True, fastmath={"contract"})
+def galerkin_filter(sd, su, od, ou, d_ptr, d_dst, d_w, u_ptr, u_dst, u_w, cpos, Sc, fuI, fuJ, td, tu):
+    """After :func:`galerkin` of the unfiltered fine matrix: the correction that makes it the product of the
+    Baraff-Witkin filtered matrix ``S A S + (I - S)``, from the few fine blocks touching a constrained vertex
+    (diagonal blocks ``td``, upper blocks ``tu``; ``cpos[i]``: vertex i's position in the filters ``Sc``, -1
+    free; ``fuI``, ``fuJ``: the upper blocks' vertices). Each such block adds ``filtered - unfiltered``
+    through its own Galerkin entries: no per-filter set-up, no copy of the fine matrix."""
+    B = np.empty(9)
+    for q in range(len(td)):
+        s = td[q]
+        c = cpos[s]
+        _filtered_block(sd, 9 * s, Sc, c, c, True, B)
+        for k in range(9):
+            B[k] -= sd[9 * s + k]
+        for e in range(d_ptr[s], d_ptr[s + 1]):
+            _gal_add(B, d_dst[e], d_w[e], od, ou)
+    for q in range(len(tu)):
+        s = tu[q]
+        _filtered_block(su, 9 * s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
+        for k in range(9):
+            B[k] -= su[9 * s + k]
+        for e in range(u_ptr[s], u_ptr[s + 1]):
+            _gal_add(B, u_dst[e], u_w[e], od, ou)
 
 
 #: :func:`implicit_cloth.solvers.pcg.current_error_estimate`, compiled: the one definition in :mod:`.estimate`

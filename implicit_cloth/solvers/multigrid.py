@@ -36,7 +36,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from ..assembly import SystemMatrix, accumulate_product
-from ..backend import Backend, BackendMismatch, get_backend
+from ..backend import Backend, BackendMismatch, get_backend, threads
 from .blocks import block_diagonal_operator, inv3
 from .pcg import Filter, SolveResult
 
@@ -393,6 +393,33 @@ def _csr_from_blocks(sm: SystemMatrix, blocks: np.ndarray) -> sp.csr_array:
 FLOAT32_MIN_VERTICES: int | None = None
 
 
+#: Levels with at least this many vertices run their passes on threads when more than one is allowed
+#: (:func:`implicit_cloth.backend.threads`); below it a parallel region costs more than it saves.
+THREAD_MIN_VERTICES = 16384
+#: Chunks every threaded pass is cut into (fixed: the chunks, not the threads, decide what is summed where,
+#: so every thread count gives the same numbers).
+THREAD_CHUNKS = 8
+
+
+def thread_chunks(n: int, uI: np.ndarray, uJ: np.ndarray, chunks: int = THREAD_CHUNKS) -> tuple:
+    """Chunks of a level for the threaded symmetric product (:func:`implicit_cloth.kernels.pcg._psymmv`).
+
+    The vertices are cut into ``chunks`` equal ranges; chunk c owns the rows of its range: the stored upper
+    blocks ``(uI[k], uJ[k])`` (sorted by row) whose row is in it, a contiguous range of ``k``, and, on their
+    column side, the blocks of earlier rows whose column is in it. Returns ``(vertex bounds, block bounds,
+    offsets of the incoming lists, the incoming blocks ascending)``.
+    """
+    vb = np.linspace(0, n, chunks + 1).round().astype(np.int64)
+    kb = np.searchsorted(uI, vb).astype(np.int64)
+    oi = np.searchsorted(vb, uI, side="right") - 1
+    oj = np.searchsorted(vb, uJ, side="right") - 1
+    cross = np.flatnonzero(oj != oi)                  # ascending
+    owner = oj[cross]
+    order = np.argsort(owner, kind="stable")
+    ip = np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=chunks))]).astype(np.int64)
+    return vb, kb, ip, cross[order].astype(np.int32)
+
+
 class PackedHierarchy(NamedTuple):
     """The packed hierarchy the compiled V-cycle reads (:func:`implicit_cloth.kernels.pcg.vcycle`), in its
     argument order: every level's diagonal and upper blocks, the filter at the constrained vertices, the
@@ -422,6 +449,18 @@ class PackedHierarchy(NamedTuple):
     C: np.ndarray         #: the coarsest solve: its upper Cholesky factor, or its dense inverse
     upper: bool           #: True: C is the factor
     omega: float          #: smoother damping
+    lpar: np.ndarray      #: per level: whether its passes run on threads (see :func:`thread_chunks`)
+    lpv: np.ndarray       #: per level: THREAD_CHUNKS + 1 vertex bounds, then as many block-row bounds
+    lpb: np.ndarray       #: per level: THREAD_CHUNKS + 1 offsets into pbb
+    pbb: np.ndarray       #: each chunk's incoming column blocks (local to the level), ascending
+
+
+def _set_numba_threads() -> None:
+    """Let numba's parallel regions use :func:`implicit_cloth.backend.threads` threads (at most its pool)."""
+    from numba import config, set_num_threads
+
+    pool = int(config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
+    set_num_threads(max(1, min(threads(), pool)))
 
 
 class _FusedHierarchy:
@@ -439,9 +478,9 @@ class _FusedHierarchy:
     gathered from the assembled blocks at setup (one pass over half of them),
     for CG's products and for the V-cycle (a float32 copy for the latter from
     :data:`FLOAT32_MIN_VERTICES` on, when set). The filter is applied on the
-    fly on the finest level; the Galerkin product of the filtered fine
-    matrix is the unfiltered one plus a correction from the few blocks that
-    touch a constrained vertex.
+    fly on the finest level, and the first Galerkin product is corrected by the
+    few fine blocks that touch a constrained vertex, filtered as they are read
+    (:func:`implicit_cloth.kernels.pcg.galerkin_filter`): no per-filter set-up.
     """
 
     def __init__(self, mg: Multigrid, prolongations: list) -> None:
@@ -480,9 +519,31 @@ class _FusedHierarchy:
         self.wb = np.zeros(3 * int(self.voff[-1]))
         self.wx = np.zeros(3 * int(self.voff[-1]))
         self.wr = np.zeros(3 * int(self.voff[-1]))
+        self._chunks(systems)
         self.filt: Filter | None = None
         self.version = -1
-        self._touch_key: bytes | None = None
+
+    def _chunks(self, systems: list[SystemMatrix]) -> None:
+        """Every level's chunks for the threaded passes (levels below THREAD_MIN_VERTICES stay serial)."""
+        K = THREAD_CHUNKS + 1
+        L1 = len(systems)
+        self.lpar = np.zeros(L1, dtype=np.uint8)
+        self.lpv = np.zeros(2 * L1 * K, dtype=np.int64)
+        self.lpb = np.zeros(L1 * K, dtype=np.int64)
+        lists, base = [], 0
+        for l, sm in enumerate(systems):
+            if sm.n < THREAD_MIN_VERTICES:
+                continue
+            u0, u1 = self.uoff[l], self.uoff[l + 1]
+            vb, kb, ip, ib = thread_chunks(sm.n, self.uI[u0:u1], self.uJ[u0:u1])
+            self.lpar[l] = 1
+            self.lpv[2 * l * K:(2 * l + 1) * K] = vb
+            self.lpv[(2 * l + 1) * K:(2 * l + 2) * K] = kb
+            self.lpb[l * K:(l + 1) * K] = ip + base
+            lists.append(ib)
+            base += len(ib)
+        self.pbb = np.concatenate(lists) if lists else np.zeros(0, dtype=np.int32)
+        self._serial = np.zeros(L1, dtype=np.uint8)
 
     def _filter_arrays(self, filt: Filter) -> None:
         self.clist = np.concatenate([filt.fixed, filt.partial]).astype(np.int64)
@@ -519,41 +580,20 @@ class _FusedHierarchy:
             v0, v1, v2 = self.voff[l - 1], self.voff[l], self.voff[l + 1]
             u0, u1, u2 = self.uoff[l - 1], self.uoff[l], self.uoff[l + 1]
             src_d, src_u = (self.adg, self.auv) if l == 1 else (self.dg[v0:v1], self.uv[u0:u1])
-            _fused.galerkin(src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
-                            self.uv[u1:u2].reshape(-1), *self._gal[l - 1])
-            if l == 1 and len(c):
-                Tt, touched, diag, ri, qi = self._touched(filt)
-                Sx = np.concatenate([Sc, eye[None]])     # index -1: a free vertex's filter, I
-                Sr = Sx[ri]
-                A = fine.blocks[touched]
-                delta = Sr @ A @ Sx[qi] - A
-                delta[diag] += eye - Sr[diag]
-                corr = (Tt @ delta.reshape(-1, 9)).reshape(-1, 3, 3)
-                nd = v2 - v1
-                self.dg[v1:v2] += corr[:nd]
-                self.uv[u1:u2] += corr[nd:]
+            gal = self._gal[l - 1]
+            args = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1), self.uv[u1:u2].reshape(-1),
+                    gal[0], gal[1], gal[2], gal[3], gal[4], gal[5])
+            _fused.galerkin(*args)
+            if l == 1 and len(c):     # the product of the filtered fine matrix S A S + (I - S)
+                cpos = np.full(n0, -1, dtype=np.int64)
+                cpos[c] = np.arange(len(c))
+                td = np.flatnonzero(cpos >= 0)
+                tu = np.flatnonzero((cpos[self.auI] >= 0) | (cpos[self.auJ] >= 0))
+                _fused.galerkin_filter(*args, cpos, Sc, self.auI, self.auJ, td, tu)
             if l < L:
                 _fused.inv3(self.dg[v1:v2].reshape(-1), self.dinv[v1:v2].reshape(-1))
         mg._A = [None] * (L + 1)
         return self.coarse_dense()
-
-    def _touched(self, filt: Filter):
-        """Fine blocks touching a constrained vertex, the Galerkin map's columns for them, and for each such
-        block the position in ``clist`` of its row and column vertex (-1: free) (cached per ``clist``)."""
-        key = self.clist.tobytes()
-        if self._touch_key != key:
-            fine = self.mg.fine
-            cpos = np.full(fine.n, -1, dtype=np.int64)
-            cpos[self.clist] = np.arange(len(self.clist))
-            ri, qi = cpos[fine.block_rows], cpos[fine.block_cols]
-            touched = np.flatnonzero((ri >= 0) | (qi >= 0))
-            diag = fine.block_rows[touched] == fine.block_cols[touched]
-            sm1 = self.mg.levels[0].system
-            rows = np.concatenate([sm1.diag_index, self._uidx[1]])    # level 1's stored blocks, packed order
-            Tt = sp.csr_array(self.mg.levels[0].T[rows][:, touched])
-            self._touch = (Tt, touched, diag, ri[touched], qi[touched])
-            self._touch_key = key
-        return self._touch
 
     def coarse_dense(self) -> np.ndarray:
         """The coarsest level's matrix as a dense array, from its packed blocks."""
@@ -579,9 +619,13 @@ class _FusedHierarchy:
 
     def _hier(self) -> PackedHierarchy:
         C, upper = self._coarse()
+        threaded = threads() > 1
+        if threaded:
+            _set_numba_threads()
         return PackedHierarchy(self.dg, self.uI, self.uJ, self.uv, self.au6, self.use6, self.voff, self.uoff,
                                self.clist, self.Sc, self.ws, self.dinv, self.pptr, self.pidx, self.pval, self.poff,
-                               self.pnnz, self.tptr, self.tidx, self.tval, self.toff, C, upper, self.mg.omega)
+                               self.pnnz, self.tptr, self.tidx, self.tval, self.toff, C, upper, self.mg.omega,
+                               self.lpar if threaded else self._serial, self.lpv, self.lpb, self.pbb)
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         from ..kernels import pcg as _fused
@@ -609,7 +653,7 @@ class _FusedHierarchy:
         dv, it, res, conv, err = _fused.pcg(
             self.adg, self.auI, self.auJ, self.auv, self.au6, self.use6, h.dg, h.uI, h.uJ, h.uv, h.voff, h.uoff,
             h.clist, h.Sc, h.dinv, h.pptr, h.pidx, h.pval, h.poff, h.pnnz, h.tptr, h.tidx, h.tval, h.toff,
-            h.C, h.upper, h.omega,
+            h.C, h.upper, h.omega, h.lpar, h.lpv, h.lpb, h.pbb,
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
             f(mass) if mass is not None else np.zeros(0), mass is not None, float(tol), int(max_iterations),
             rule == "bound", int(min_delay), float(delay_fraction))

@@ -1,0 +1,240 @@
+"""Which V-cycle: iterations and true error of dv per lever, on systems taken from real steps, free and in contact.
+
+Systems: the linear system (matrix, right-hand side, prescribed dv, Baraff-Witkin filter) of a step taken from
+a run of the engine with its default settings:
+
+* ``stiff``: the hanging stiff cloth of ``scaling.py`` (k = 1e4 N/m), the first solve of step ``--stiff-step``;
+* ``hanging`` and ``drape``: the peer scene of ``vs_blender.py`` (k = 1e3 N/m) hanging from two corners, and
+  dropped on the sphere, the last solve of step ``--peer-step`` (2 s: the drape at rest on the sphere, with
+  its resting contacts: sliding ``S = I - n n^T`` or sticking ``S = 0``); ``drape`` is also solved with its
+  contact constraints removed (the same matrix, free), which separates what the constraints cost from what
+  the draped state costs.
+
+Levers (a numpy V-cycle written here, the same hierarchy as ``implicit_cloth.solvers.multigrid``:
+bilinear prolongations, Galerkin coarse matrices of the filtered fine matrix ``S A S + (I - S)``, dense
+Cholesky at the coarsest level), each the preconditioner of the library's filtered PCG
+(``filtered_pcg(compiled=False)``, tolerance ``--tolerance``, its stopping rule unchanged):
+``jacobi`` (the library's: one damped block-Jacobi sweep, omega 0.7, before and after), ``jacobi2`` (two
+sweeps), ``W`` (a W-cycle), ``chebyshev2`` / ``chebyshev3`` (a Chebyshev polynomial of ``D^-1 A`` of degree
+2 / 3 on ``[lmax / 30, lmax]``, ``lmax`` 1.1 times a 15-step power estimate per level), ``filtered_P``
+(coarse spaces in the free directions: prolongation ``S P``, coarse matrices ``P^T S A S P``). The true
+error is against a sparse direct solve of the filtered system. Cost: fine-level matrix passes per CG
+iteration (CG's product plus the V-cycle's, its coarse levels counted at their share of the fine level's
+blocks), the figure that decides time once the iterations are known (the compiled path's ms of the default
+lever are in ``scaling.py``/``vs_blender.py``; this script's numpy times are not a measure of anything).
+
+Usage::
+
+    python benchmarks/solver_choice.py --sizes 32 64            # ~10 min on 2 shared cores
+    python benchmarks/solver_choice.py --sizes 32 64 128 256 --systems stiff
+
+Writes ``OUT/solver_choice.{json,md}``. Never asserts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from _common import ROOT, hanging_stiff, ic, machine, write_outputs
+from vs_blender import scene as peer_scene
+
+from implicit_cloth.solvers.blocks import inv3
+from implicit_cloth.solvers.multigrid import grid_prolongations
+from implicit_cloth.solvers.pcg import Filter, filtered_pcg
+
+LEVERS = {
+    "jacobi": {}, "jacobi2": {"nu": 2}, "W": {"cycle": "W"},
+    "chebyshev2": {"smoother": "chebyshev", "degree": 2}, "chebyshev3": {"smoother": "chebyshev", "degree": 3},
+    "filtered_P": {"filtered_p": True},
+}
+
+
+def capture(kind: str, n: int, step: int) -> dict:
+    """The linear system of step ``step`` of a default run (first solve for ``stiff``, last for the others)."""
+    d = hanging_stiff(n, 1e4) if kind == "stiff" else peer_scene(kind, n)
+    sim = ic.Simulator(ic.Scene.from_dict(d))
+    integ = sim.integrator
+    rec: list[dict] = []
+    orig = integ._solve
+
+    def spy(A, b, z, filt, info, guess=None, tolerance=None):
+        rec.append({"A": sp.csr_array(A, copy=True), "b": b.reshape(-1).copy(), "z": z.reshape(-1).copy(),
+                    "filt": Filter(filt.n, filt.fixed.copy(), filt.partial.copy(), filt.partial_S.copy())})
+        return orig(A, b, z, filt, info, guess, tolerance)
+
+    sim.step(step - 1)
+    integ._solve = spy
+    sim.step(1)
+    r = rec[0] if kind == "stiff" else rec[-1]
+    r.update(masses=sim.model.masses.copy(), grid=sim.model.geometry.grid_shape, kind=kind, n=n, step=step,
+             solves_in_step=len(rec))
+    return r
+
+
+def _bdiag(B: np.ndarray) -> sp.csr_array:
+    n = len(B)
+    return sp.csr_array(sp.bsr_matrix((B, np.arange(n), np.arange(n + 1)), shape=(3 * n, 3 * n)).tocsr())
+
+
+def _diag_blocks(A) -> np.ndarray:
+    n = A.shape[0] // 3
+    i = np.arange(n) * 3
+    return np.stack([np.stack([A[i + a, i + b] for b in range(3)], -1) for a in range(3)], -2)
+
+
+class VCycle:
+    """The numpy V-cycle with the levers of the module docstring."""
+
+    def __init__(self, A, filt: Filter, Ps: list, nu: int = 1, cycle: str = "V", smoother: str = "jacobi",
+                 degree: int = 2, omega: float = 0.7, filtered_p: bool = False) -> None:
+        S = _bdiag(filt.matrices())
+        I3 = sp.identity(A.shape[0], format="csr")
+        self.A = [sp.csr_array(S @ A @ S + (I3 - S))]
+        self.P: list = []
+        for l, P in enumerate(Ps):
+            P3 = sp.csr_array(sp.kron(P, sp.identity(3), format="csr"))
+            if l == 0 and filtered_p:
+                P3 = sp.csr_array(S @ P3)
+                C = P3.T @ (S @ A @ S) @ P3
+                d = np.abs(C.diagonal())        # directions no coarse function reaches: identity
+                C = C + sp.diags(np.where(d < 1e-14 * max(d.max(), 1e-300), 1.0, 0.0))
+            else:
+                C = P3.T @ self.A[-1] @ P3
+            self.P.append(P3)
+            self.A.append(sp.csr_array(C))
+        self.D = [_bdiag(inv3(_diag_blocks(Al))) for Al in self.A[:-1]]
+        self.chol = sla.cho_factor(self.A[-1].toarray())
+        self.nu, self.cycle, self.smoother, self.degree, self.omega = nu, cycle, smoother, degree, omega
+        self.lmax = []
+        if smoother == "chebyshev":
+            for Al, D in zip(self.A[:-1], self.D):
+                v = np.random.default_rng(0).standard_normal(Al.shape[0])
+                lam = 1.0
+                for _ in range(15):
+                    v = D @ (Al @ v)
+                    lam = float(np.linalg.norm(v))
+                    v /= lam
+                self.lmax.append(1.1 * lam)
+
+    def _smooth(self, l: int, b: np.ndarray, x: np.ndarray) -> np.ndarray:
+        A, D = self.A[l], self.D[l]
+        if self.smoother == "jacobi":
+            for _ in range(self.nu):
+                x = x + self.omega * (D @ (b - A @ x))
+            return x
+        lmax = self.lmax[l]
+        lmin = lmax / 30.0
+        th, de = (lmax + lmin) / 2, (lmax - lmin) / 2
+        sig = th / de
+        rho = 1 / sig
+        d = (D @ (b - A @ x)) / th
+        for k in range(self.degree):
+            x = x + d
+            if k == self.degree - 1:
+                break
+            rho_new = 1 / (2 * sig - rho)
+            d = rho_new * rho * d + 2 * rho_new / de * (D @ (b - A @ x))
+            rho = rho_new
+        return x
+
+    def _vcycle(self, l: int, b: np.ndarray) -> np.ndarray:
+        if l == len(self.A) - 1:
+            return sla.cho_solve(self.chol, b)
+        x = self._smooth(l, b, np.zeros_like(b))
+        for _ in range(2 if self.cycle == "W" and l < len(self.A) - 2 else 1):
+            x = x + self.P[l] @ self._vcycle(l + 1, self.P[l].T @ (b - self.A[l] @ x))
+        return self._smooth(l, b, x)
+
+    def apply(self, r: np.ndarray) -> np.ndarray:
+        return self._vcycle(0, r)
+
+    def passes(self) -> float:
+        """Fine-level matrix passes per CG iteration (CG's product + the V-cycle's, coarse levels by share)."""
+        per = 2 * self.nu if self.smoother == "jacobi" else 2 * self.degree   # pre + post, residuals included
+        share = [Al.nnz / self.A[0].nnz for Al in self.A[:-1]]
+        visits = [(2 ** l if self.cycle == "W" else 1) for l in range(len(share))]
+        return 1.0 + per * sum(s * v for s, v in zip(share, visits))
+
+
+def direct(A, b: np.ndarray, z: np.ndarray, filt: Filter) -> np.ndarray:
+    """The exact filtered solution: ``(I - S) dv = (I - S) z``, ``S (A dv - b) = 0``."""
+    S = _bdiag(filt.matrices())
+    zc = z - filt.apply(z.copy())
+    K = sp.csc_matrix(S @ A @ S + (sp.identity(A.shape[0]) - S))
+    return zc + S @ spla.spsolve(K, S @ (b - A @ zc))
+
+
+def solve_all(sysd: dict, levers: list[str], tol: float, label: str) -> list[dict]:
+    A, b, z, filt = sysd["A"], sysd["b"], sysd["z"], sysd["filt"]
+    Ps = grid_prolongations(*sysd["grid"])
+    ref = direct(A, b, z, filt)
+    rows = []
+    for name in levers:
+        pc = VCycle(A, filt, Ps, **LEVERS[name])
+        t0 = time.perf_counter()
+        dv, res = filtered_pcg(A, b, z, filt, pc, tol, 2000, mass=np.repeat(sysd["masses"], 3), compiled=False)
+        row = {"system": label, "n": sysd["n"], "lever": name, "iterations": res.iterations,
+               "true_error": float(np.linalg.norm(dv - ref) / np.linalg.norm(ref)), "converged": res.converged,
+               "passes_per_iteration": pc.passes(), "constrained": int(len(filt.fixed) + len(filt.partial)),
+               "numpy_s": time.perf_counter() - t0}
+        row["passes"] = row["passes_per_iteration"] * row["iterations"]
+        rows.append(row)
+        print(f"{label:16s} {sysd['n']:4d}² {name:11s} its {res.iterations:4d}  true err {row['true_error']:.1e}  "
+              f"{row['passes_per_iteration']:.2f} passes/it = {row['passes']:.0f}  (constrained {row['constrained']})",
+              flush=True)
+    return rows
+
+
+def markdown(res: dict) -> str:
+    out = [f"Iterations / true error of dv / fine-level matrix passes of the whole solve, tolerance {res['tolerance']:g}.",
+           ""]
+    for label in dict.fromkeys(r["system"] for r in res["rows"]):
+        rows = [r for r in res["rows"] if r["system"] == label]
+        sizes = sorted({r["n"] for r in rows})
+        out += [f"**{label}**", "", "| lever | " + " | ".join(f"{n}²" for n in sizes) + " |",
+                "|---|" + "---|" * len(sizes)]
+        for lever in dict.fromkeys(r["lever"] for r in rows):
+            cells = []
+            for n in sizes:
+                r = next((r for r in rows if r["n"] == n and r["lever"] == lever), None)
+                cells.append("-" if r is None else f"{r['iterations']} / {r['true_error']:.1e} / {r['passes']:.0f}")
+            out.append(f"| {lever} | " + " | ".join(cells) + " |")
+        out.append("")
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", type=int, nargs="+", default=[32, 64])
+    p.add_argument("--systems", nargs="+", default=["stiff", "hanging", "drape"], choices=["stiff", "hanging", "drape"])
+    p.add_argument("--levers", nargs="+", default=list(LEVERS), choices=list(LEVERS))
+    p.add_argument("--tolerance", type=float, default=1e-3)
+    p.add_argument("--stiff-step", type=int, default=21)
+    p.add_argument("--peer-step", type=int, default=120)
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    a = p.parse_args(argv)
+    rows = []
+    for kind in a.systems:
+        for n in a.sizes:
+            sysd = capture(kind, n, a.stiff_step if kind == "stiff" else a.peer_step)
+            label = {"stiff": "stiff hanging (k = 1e4)", "hanging": "hanging (k = 1e3)", "drape": "drape, at rest"}[kind]
+            rows += solve_all(sysd, a.levers, a.tolerance, label)
+            if kind == "drape":
+                free = dict(sysd, filt=Filter(sysd["filt"].n, np.zeros(0, dtype=np.int64)))
+                rows += solve_all(free, ["jacobi"], a.tolerance, "drape, constraints removed")
+    res = {"benchmark": "solver_choice", "sizes": a.sizes, "tolerance": a.tolerance, "rows": rows,
+           "machine": machine()}
+    md = markdown(res)
+    write_outputs(Path(a.out), "solver_choice", res, md)
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,188 @@
+"""implicit_cloth against Blender 3.4's cloth, side by side in one run: ms per 1/60 s frame and the ratio per size.
+
+The scene (SI units; the shared peer scene): a 1 m x 1 m cloth of n x n vertices, 0.1 kg, springs
+k = 1000 (structural) / 333.3 (shear) / 10 (bend) N/m, damping 0.01 N*s/m, no air drag, gravity, dt = 1/60 s,
+2 s simulated (120 frames). "hanging": the two top corners pinned. "drape": dropped from z = 0.5 m onto a
+sphere r = 0.3 m (friction 0.3, contact distance 0.01 m in all). Blender's cloth is set up from the same SI
+scene by ``blender_cloth.py`` (run inside Blender; its docstring gives the unit mapping); its solver is
+one thread with CG capped at 100 iterations and a 1e-2 residual (its error is not bounded). Ours: backward
+Euler with the default solver (multigrid PCG, tolerance 1e-3 on the error of dv) and the default step control
+(adaptive: a step that breaks the energy balance or the strain bound is redone), or ``--fixed`` (one
+linearised step per frame, like Blender). Both run in their own processes, alternating (ours, Blender, ours,
+...), ``--pairs`` pairs per size and scene; the medians are compared. Timed: the frames after the first
+(start-up, the first frame and, for ours, the first load of the compiled kernels, are not). Each run also
+reports the lowest point, the rms speed of the last frame (m/s; "at rest" below 0.01) and, for ours, the CG
+iterations and solves per frame.
+
+Usage::
+
+    python benchmarks/vs_blender.py                                   # hanging 32..256, drape 32..128
+    python benchmarks/vs_blender.py --scenes drape --sizes 32 64 --pairs 1
+    python benchmarks/vs_blender.py --fixed --threads 2
+
+Needs Blender (``apt-get install blender python3-numpy``: Debian's 3.4 and the numpy its Python uses);
+without it the script says so and exits 0. Writes ``OUT/vs_blender.{json,md}``. Never asserts a time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+FPS = 60
+SIZES = {"hanging": [32, 64, 128, 256], "drape": [32, 64, 128]}
+
+
+def scene(kind: str, n: int, fixed: bool = False) -> dict:
+    """The benchmark scene as an implicit_cloth scene table (see the module docstring)."""
+    springs = {"structural": {"stiffness": 1000.0, "damping": 0.01},
+               "shear": {"stiffness": 1000.0 / 3.0, "damping": 0.01},
+               "bend": {"stiffness": 10.0, "damping": 0.0}}
+    d: dict = {"simulation": {"integrator": "backward_euler", "dt": 1 / FPS, "duration": 2.0, "frame_rate": FPS},
+               "cloth": {"size": [1.0, 1.0], "resolution": [n, n], "mass": 0.1, "plane": "xy",
+                         "center": [0.0, 0.0, 0.0 if kind == "hanging" else 0.5],
+                         "pins": ["top_left", "top_right"] if kind == "hanging" else [], "springs": springs},
+               "effects": {"gravity": [0.0, 0.0, -9.81]}}
+    if kind == "drape":
+        d["obstacles"] = [{"shape": "sphere", "radius": 0.3, "center": [0.0, 0.0, 0.0], "friction": 0.3}]
+        d["collision"] = {"thickness": 0.005}
+    if fixed:
+        d["simulation"]["adaptive"] = {"enabled": False}
+    return d
+
+
+def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: int | None) -> dict:
+    """One run of ours in this process (the worker): the RESULT record."""
+    import numpy as np
+
+    sys.path.insert(0, str(HERE.parent))
+    import implicit_cloth as ic
+    from implicit_cloth import backend
+
+    if threads is not None:
+        backend.set_threads(threads)
+    solver = {"tolerance": tolerance} if tolerance else None
+    sim = ic.Simulator(ic.Scene.from_dict(scene(kind, n, fixed)), solver=solver)
+    frames = 120
+    sim.step(1)                                   # the first frame: kernels loaded from numba's cache
+    its = solves = 0
+    t0 = time.perf_counter()
+    for _ in range(frames - 2):
+        sim.step(1)
+        its += sim.last_step.iterations
+        solves += sim.last_step.solves
+    wall = time.perf_counter() - t0
+    x_before = sim.positions.copy()
+    t0 = time.perf_counter()
+    sim.step(1)
+    wall += time.perf_counter() - t0
+    its += sim.last_step.iterations
+    solves += sim.last_step.solves
+    x = sim.positions
+    timed = frames - 1
+    return {"peer": f"implicit_cloth-{ic.__version__}", "scene": kind, "n": n, "frames": timed,
+            "fixed_steps": fixed, "tolerance": sim.integrator.tolerance, "threads": backend.threads(),
+            "accelerator": getattr(sim.integrator.precond, "accelerator", "numpy"),
+            "wall_s": wall, "ms_per_frame": 1e3 * wall / timed, "iterations_per_frame": its / timed,
+            "solves_per_frame": solves / timed, "zmin": float(x[:, 2].min()),
+            "rms_speed": float(np.sqrt(np.mean(np.sum((x - x_before) ** 2, axis=1))) * FPS),
+            "finite": bool(np.isfinite(x).all())}
+
+
+def _result(proc: subprocess.CompletedProcess) -> dict:
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[len("RESULT "):])
+    raise RuntimeError(f"no RESULT line (exit {proc.returncode}):\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+
+
+def ours(kind: str, n: int, a: argparse.Namespace) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--scenes", kind, "--sizes", str(n)]
+    if a.fixed:
+        cmd.append("--fixed")
+    if a.tolerance:
+        cmd += ["--tolerance", str(a.tolerance)]
+    if a.threads:
+        cmd += ["--threads", str(a.threads)]
+    return _result(subprocess.run(cmd, capture_output=True, text=True, timeout=a.timeout))
+
+
+def blender(exe: str, kind: str, n: int, a: argparse.Namespace) -> dict:
+    cmd = [exe, "-b", "--factory-startup", "-noaudio", "--python", str(HERE / "blender_cloth.py"), "--",
+           "--scene", kind, "--n", str(n)]
+    return _result(subprocess.run(cmd, capture_output=True, text=True, timeout=a.timeout))
+
+
+def markdown(res: dict) -> str:
+    mode = "fixed steps (one per frame)" if res["fixed"] else "default step control (adaptive)"
+    out = [f"ms per 1/60 s frame, median of {res['pairs']} alternating pairs; ours: tolerance "
+           f"{res['tolerance'] or 1e-3:g}, {mode}, {res['threads'] or 1} solver thread(s); Blender "
+           f"{res['blender_version']}, one thread, CG capped at 100 iterations / 1e-2 residual.", "",
+           "| scene | grid | ours (ms/frame) | Blender (ms/frame) | ratio ours / Blender | ours: CG its / frame | "
+           "ours: solves / frame | ours: rms speed at the end (m/s) | Blender: rms speed (m/s) |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for r in res["rows"]:
+        out.append(f"| {r['scene']} | {r['n']}² | {r['ours_ms']:.1f} | {r['blender_ms']:.1f} | "
+                   f"**{r['ratio']:.2f}** | {r['ours_iterations']:.1f} | {r['ours_solves']:.2f} | "
+                   f"{r['ours_rms_speed']:.3f} | {r['blender_rms_speed']:.3f} |")
+    return "\n".join(out) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", nargs="+", default=["hanging", "drape"], choices=["hanging", "drape"])
+    p.add_argument("--sizes", type=int, nargs="+", default=None, help="default: hanging 32-256, drape 32-128")
+    p.add_argument("--pairs", type=int, default=3)
+    p.add_argument("--fixed", action="store_true", help="ours with one linearised step per frame (no adaptive)")
+    p.add_argument("--tolerance", type=float, default=None, help="ours: solver tolerance (default 1e-3)")
+    p.add_argument("--threads", type=int, default=None, help="ours: solver threads (default: the library's)")
+    p.add_argument("--timeout", type=float, default=3600.0, help="s per run")
+    p.add_argument("--out", default=str(HERE / "results"))
+    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.worker:
+        print("RESULT " + json.dumps(run_ours(a.scenes[0], a.sizes[0], a.fixed, a.tolerance, a.threads)))
+        return 0
+    exe = shutil.which("blender")
+    if exe is None:
+        print("vs_blender: Blender is not installed, skipped (apt-get install blender python3-numpy)")
+        return 0
+    rows, version = [], "?"
+    for kind in a.scenes:
+        for n in (a.sizes or SIZES[kind]):
+            o, b = [], []
+            for _ in range(a.pairs):
+                o.append(ours(kind, n, a))
+                b.append(blender(exe, kind, n, a))
+                print(f"{kind} {n}²: ours {o[-1]['ms_per_frame']:.1f} ms/frame ({o[-1]['iterations_per_frame']:.1f} "
+                      f"its), Blender {b[-1]['ms_per_frame']:.1f}", flush=True)
+            version = b[-1]["peer"]
+            med = lambda rs, k: statistics.median(r[k] for r in rs)  # noqa: E731
+            row = {"scene": kind, "n": n, "ours_ms": med(o, "ms_per_frame"), "blender_ms": med(b, "ms_per_frame"),
+                   "ours_iterations": med(o, "iterations_per_frame"), "ours_solves": med(o, "solves_per_frame"),
+                   "ours_rms_speed": med(o, "rms_speed"), "blender_rms_speed": med(b, "rms_speed"),
+                   "ours_runs": o, "blender_runs": b}
+            row["ratio"] = row["ours_ms"] / row["blender_ms"]
+            rows.append(row)
+            print(f"{kind} {n}²: ours {row['ours_ms']:.1f} ms/frame, Blender {row['blender_ms']:.1f} ms/frame, "
+                  f"ratio {row['ratio']:.2f}", flush=True)
+    res = {"benchmark": "vs_blender", "pairs": a.pairs, "fixed": a.fixed, "tolerance": a.tolerance,
+           "threads": a.threads, "blender_version": version, "rows": rows}
+    from _common import machine, write_outputs
+
+    res["machine"] = machine()
+    md = markdown(res)
+    write_outputs(Path(a.out), "vs_blender", res, md)
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
