@@ -318,10 +318,29 @@ def plot(res: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def merge(paths: list[Path], out: Path) -> int:
+    """Combine partial runs (say, one size per run, as the machine allows) into one result, rows in table order."""
+    import json
+
+    parts = [json.loads(Path(p).read_text()) for p in paths]
+    order = {"static": 0, "material": 1, "moving": 2}
+    rows = sorted((r for part in parts for r in part["rows"]),
+                  key=lambda r: (order[r["group"]], r["material"] or "", list(SHAPES).index(r["shape"]),
+                                 r["speed"] or 0.0, r["n"], -r["dt"]))
+    res = {**parts[0], "rows": rows, "wall_s": sum(p["wall_s"] for p in parts),
+           "quick": any(p["quick"] for p in parts), "merged_from": [str(p) for p in paths]}
+    out.mkdir(parents=True, exist_ok=True)
+    write_outputs(out, "contact_energy", res, markdown(res))
+    plot(res, out / "contact_energy.png")
+    print(markdown(res))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="CI smoke: a few small, short rows")
-    p.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=list(SHAPES))
+    p.add_argument("--shapes", nargs="*", default=list(SHAPES), choices=list(SHAPES),
+                   help="static shapes (none: no static rows)")
     p.add_argument("--sizes", nargs="+", type=int, default=[32, 64, 96])
     p.add_argument("--dts", nargs="+", type=float, default=[60, 30], help="1/dt values, Hz")
     p.add_argument("--materials", nargs="*", default=list(ic.MATERIALS))
@@ -332,7 +351,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--moving-duration", type=float, default=1.0, help="moving rows, s")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    p.add_argument("--merge", nargs="+", type=Path, metavar="JSON",
+                   help="run nothing: combine the rows of earlier (partial) runs' contact_energy.json into one table")
     args = p.parse_args(argv)
+    if args.merge:
+        return merge(args.merge, args.out)
     if args.quick:
         args.shapes, args.sizes, args.dts = ["sphere", "box_face", "mesh_box"], [12], [30]
         args.materials, args.speeds, args.moving_sizes = [], [10.0], [12]

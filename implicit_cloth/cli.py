@@ -358,20 +358,25 @@ def benchmarks_dir() -> Path:
     return Path(__file__).resolve().parents[1] / "benchmarks"
 
 
+#: Short names of benchmarks (``implicit-cloth bench contact`` runs benchmarks/contact_energy.py).
+BENCH_ALIASES = {"contact": "contact_energy"}
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     folder = benchmarks_dir()
     names = sorted(p.stem for p in folder.glob("*.py") if not p.stem.startswith("_")) if folder.is_dir() else []
     if not names:
         _error(f"no benchmarks/ folder beside the package ({folder}); run from a clone with pip install -e .")
         return EXIT_BAD_INPUT
-    if args.name not in names:
+    name = BENCH_ALIASES.get(args.name, args.name)
+    if name not in names:
         _error(f"bench: unknown benchmark {args.name!r} (available: {', '.join(names)})")
         return EXIT_BAD_INPUT
     import importlib
 
     sys.path.insert(0, str(folder))
     try:
-        module = importlib.import_module(args.name)
+        module = importlib.import_module(name)
         return int(module.main(list(args.args)) or 0)
     except SystemExit as exc:  # the benchmark's own argument errors
         return exc.code if isinstance(exc.code, int) else EXIT_BAD_INPUT

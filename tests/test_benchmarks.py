@@ -56,6 +56,30 @@ def test_self_collision_quick_via_cli(tmp_path):
     assert "| 14² |" in (tmp_path / "self_collision.md").read_text()
 
 
+def test_contact_energy_quick_via_cli(tmp_path):
+    """``implicit-cloth bench contact --quick``: every row judged from its states (energy rise, strain, end state),
+    the goals recorded; the outputs are well formed. Goals are read off the table, not asserted here (the
+    contact tests assert them)."""
+    from implicit_cloth.cli import main
+
+    assert main(["bench", "contact", "--quick", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "contact_energy.json").read_text())
+    assert res["benchmark"] == "contact_energy" and res["quick"] is True
+    groups = {r["group"] for r in res["rows"]}
+    assert groups == {"static", "moving"}
+    for r in res["rows"]:
+        assert r["frames"] >= 1 and r["ms_per_frame"] > 0 and r["substeps_per_frame"] >= 1
+        assert r["report_status"] in ("ok", "warning")
+        if r["group"] == "static":
+            assert r["end"] in ("resting on it", "still moving", "slid off")
+        else:
+            assert r["max_stretch"] >= 1.0
+    md = (tmp_path / "contact_energy.md").read_text()
+    assert "| static | sphere | 12² |" in md and "Moving sphere" in md
+    png = (tmp_path / "contact_energy.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+
+
 def test_vs_blender_skips_without_blender_and_its_worker_reports(tmp_path):
     """Without Blender on PATH the comparison says so and exits 0; the worker that times our side prints one
     RESULT record (a small cloth, fixed steps) with the fields the comparison reads."""

@@ -248,7 +248,6 @@ class Collider:
         still = contacts.Frame(state.x, state.x, state.t, state.t + h, c.thickness, c.edges, c.faces, c.free,
                                reach=(CONTACT_BAND - 1.0) * c.thickness)
         near = contacts.detect(still, c.obstacles)
-        near.impact[:] = 0.0
         near.stick &= self._mu[near.ob] > 0
         if prev is None:
             return near, np.zeros(0, dtype=np.int64)

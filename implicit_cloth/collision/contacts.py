@@ -46,8 +46,6 @@ from .shapes import MeshShape
 VERTEX, FEATURE = 0, 1
 #: A plane violated by less than this fraction of the thickness is not a new contact.
 DETECT_FRACTION = 0.02
-#: A vertex path that comes within this fraction of the thickness counts as an impact for restitution.
-IMPACT_FRACTION = 0.5
 #: Barycentric weights below this do not hold a primitive's vertex.
 MIN_WEIGHT = 1e-3
 
@@ -74,8 +72,6 @@ class Planes:
         Normal force of the last solve that held it, N (0 for a new contact).
     viol : (K,) array
         Violation ``off - n . p1`` of the proposed end position when detected, m.
-    impact : (K,) array
-        Normal velocity of the vertex relative to the obstacle before the impact, m/s (<= 0; 0 if resting).
     stick : (K,) bool array
         Friction state: sticking (held tangentially) or sliding.
     slip : (K, 3) array
@@ -90,7 +86,6 @@ class Planes:
     kind: np.ndarray
     force: np.ndarray
     viol: np.ndarray
-    impact: np.ndarray
     stick: np.ndarray
     slip: np.ndarray
 
@@ -98,7 +93,7 @@ class Planes:
     def empty(cls) -> "Planes":
         z = np.zeros(0)
         i = np.zeros(0, dtype=np.int64)
-        return cls(i, i.copy(), np.zeros((0, 3)), z, np.zeros((0, 3)), i.copy(), z.copy(), z.copy(), z.copy(),
+        return cls(i, i.copy(), np.zeros((0, 3)), z, np.zeros((0, 3)), i.copy(), z.copy(), z.copy(),
                    np.zeros(0, dtype=bool), np.zeros((0, 3)))
 
     def __len__(self) -> int:
@@ -124,13 +119,12 @@ class Planes:
         return self.take(order[first])
 
 
-def make(idx, ob: int, n, off, point, kind: int, viol, impact=None) -> Planes:
+def make(idx, ob: int, n, off, point, kind: int, viol) -> Planes:
+    """New contacts (no normal force yet, sticking) of obstacle ``ob``."""
     k = len(idx)
     return Planes(np.asarray(idx, dtype=np.int64), np.full(k, ob, dtype=np.int64), np.asarray(n, dtype=float),
                   np.asarray(off, dtype=float), np.asarray(point, dtype=float), np.full(k, kind, dtype=np.int64),
-                  np.zeros(k), np.asarray(viol, dtype=float),
-                  np.zeros(k) if impact is None else np.asarray(impact, dtype=float),
-                  np.ones(k, dtype=bool), np.zeros((k, 3)))
+                  np.zeros(k), np.asarray(viol, dtype=float), np.ones(k, dtype=bool), np.zeros((k, 3)))
 
 
 def merge(active: Planes, found: Planes) -> Planes:
@@ -158,7 +152,6 @@ def inherit(old: Planes, new: Planes) -> None:
     new.force[had] = old.force[r[had]]
     new.stick[had] = old.stick[r[had]]
     new.slip[had] = old.slip[r[had]]
-    new.impact[had] = 0.0             # held already: not an impact
 
 
 # --------------------------------------------------------------------------- detection
@@ -189,27 +182,21 @@ def detect(frame: Frame, obstacles: list, tol: float | None = None) -> Planes:
         mo, shape = ob.motion, ob.shape
         p0 = mo.to_local(frame.x0, frame.t0)
         p1 = mo.to_local(frame.x1, frame.t1)
-        h = frame.t1 - frame.t0
         if isinstance(shape, MeshShape):
-            parts += _mesh(frame, k, shape, p0, p1, h)
+            parts += _mesh(frame, k, shape, p0, p1)
         else:
-            parts.append(_vertices(frame, k, shape, p0, p1, h))
+            parts.append(_vertices(frame, k, shape, p0, p1))
             if len(shape.feature_points):
-                parts.append(_corners(frame, k, shape, shape.feature_points, p0, p1, h))
+                parts.append(_corners(frame, k, shape, shape.feature_points, p0, p1))
             if len(shape.feature_edges):
-                parts.append(_edge_pairs(frame, k, shape, shape.feature_edges, p0, p1, h))
+                parts.append(_edge_pairs(frame, k, shape, shape.feature_edges, p0, p1))
             if not shape.flat:
                 parts.append(_edge_interiors(frame, k, shape, p1))
     found = Planes.cat(parts)
     return found.take(found.viol > tol).best_per_vertex()
 
 
-def _approach(p0: np.ndarray, p1: np.ndarray, n: np.ndarray, h: float) -> np.ndarray:
-    """Normal velocity relative to the obstacle over the step, m/s (negative approaching)."""
-    return np.minimum(np.einsum("ij,ij->i", p1 - p0, n) / h, 0.0)
-
-
-def _vertices(frame: Frame, k: int, shape, p0, p1, h) -> Planes:
+def _vertices(frame: Frame, k: int, shape, p0, p1) -> Planes:
     th = frame.thickness
     r = th + frame.reach
     vid = np.flatnonzero(near(shape, p0, p1, r) & frame.free)
@@ -224,18 +211,11 @@ def _vertices(frame: Frame, k: int, shape, p0, p1, h) -> Planes:
     _, n, c = shape.closest(q)
     off = np.einsum("ij,ij->i", n, c) + th
     viol = off - np.einsum("ij,ij->i", n, p1[vid])
-    return make(vid, k, n, off, c, VERTEX, viol, _approach(p0[vid], p1[vid], n, h))
-
-
-def vertex_planes(frame: Frame, k: int, shape, p: np.ndarray, vid: np.ndarray) -> Planes:
-    """Vertex contact planes of the vertices ``vid`` at local positions ``p[vid]`` (nearest surface point)."""
-    _, n, c = shape.closest(p[vid])
-    off = np.einsum("ij,ij->i", n, c) + frame.thickness
-    return make(vid, k, n, off, c, VERTEX, off - np.einsum("ij,ij->i", n, p[vid]))
+    return make(vid, k, n, off, c, VERTEX, viol)
 
 
 def _lift(frame: Frame, k: int, prims: np.ndarray, w: np.ndarray, n: np.ndarray, target: np.ndarray,
-          point: np.ndarray, p1: np.ndarray, impact: np.ndarray | None = None) -> Planes:
+          point: np.ndarray, p1: np.ndarray) -> Planes:
     """Per-vertex planes that bring primitive points ``P = sum_j w_j p1_j`` up to ``n . P = target`` (features).
 
     The point's shortfall ``D`` is shared as the smallest correction that makes it up (as a point correction
@@ -256,8 +236,7 @@ def _lift(frame: Frame, k: int, prims: np.ndarray, w: np.ndarray, n: np.ndarray,
     k_, m_ = np.nonzero((share > 0) & ok[:, None])
     rise = share[k_, m_] * lift[k_]
     off = hj[k_, m_] + rise
-    imp = None if impact is None else impact[k_]
-    return make(prims[k_, m_], k, n[k_], off, point[k_], FEATURE, np.minimum(short[k_], rise), imp)
+    return make(prims[k_, m_], k, n[k_], off, point[k_], FEATURE, np.minimum(short[k_], rise))
 
 
 def _pairs_near(frame: Frame, shape, prims: np.ndarray, feats_lo: np.ndarray, feats_hi: np.ndarray, p0, p1):
@@ -274,7 +253,7 @@ def _pairs_near(frame: Frame, shape, prims: np.ndarray, feats_lo: np.ndarray, fe
     return nr[kj], fi
 
 
-def _corners(frame: Frame, k: int, shape, feats: np.ndarray, p0, p1, h, pairs=None) -> Planes:
+def _corners(frame: Frame, k: int, shape, feats: np.ndarray, p0, p1, pairs=None) -> Planes:
     """Obstacle corners and tips (local points ``feats``) against cloth triangles (candidate ``pairs`` if given)."""
     th = frame.thickness
     T = frame.faces
@@ -305,12 +284,10 @@ def _corners(frame: Frame, k: int, shape, feats: np.ndarray, p0, p1, h, pairs=No
     if np.any(cr):   # a crossing's weights: where the corner went through
         _, w[cr] = ccd.point_triangle_closest(f[cr], As[cr, 0], As[cr, 1], As[cr, 2])
     target = np.einsum("ij,ij->i", n[a], f[a]) + th
-    vrel = np.einsum("kmj,kj->km", A1[a] - A0[a], n[a]) / h
-    impact = np.minimum(np.einsum("km,km->k", w[a], vrel), 0.0)
-    return _lift(frame, k, T[pr[a]], w[a], n[a], target, f[a], p1, impact)
+    return _lift(frame, k, T[pr[a]], w[a], n[a], target, f[a], p1)
 
 
-def _edge_pairs(frame: Frame, k: int, shape, feats: np.ndarray, p0, p1, h, pairs=None,
+def _edge_pairs(frame: Frame, k: int, shape, feats: np.ndarray, p0, p1, pairs=None,
                 target_fraction: float = 1.0) -> Planes:
     """Obstacle edges (local segments ``feats`` (F, 2, 3)) against cloth edges (candidate ``pairs`` if given).
 
@@ -347,9 +324,7 @@ def _edge_pairs(frame: Frame, k: int, shape, feats: np.ndarray, p0, p1, h, pairs
     i = np.flatnonzero(act)
     w = np.column_stack([1.0 - a[i], a[i]])
     target = np.einsum("ij,ij->i", n[i], qc[i]) + target_th
-    vrel = np.einsum("kmj,kj->km", A1[i] - A0[i], n[i]) / h
-    impact = np.minimum(np.einsum("km,km->k", w, vrel), 0.0)
-    return _lift(frame, k, E[pr[i]], w, n[i], target, qc[i], p1, impact)
+    return _lift(frame, k, E[pr[i]], w, n[i], target, qc[i], p1)
 
 
 def _edge_interiors(frame: Frame, k: int, shape, p1) -> Planes:
@@ -373,7 +348,7 @@ def _edge_interiors(frame: Frame, k: int, shape, p1) -> Planes:
     return _lift(frame, k, E[nr[i]], w, n, target, c, p1)
 
 
-def _mesh(frame: Frame, k: int, shape, p0, p1, h) -> list[Planes]:
+def _mesh(frame: Frame, k: int, shape, p0, p1) -> list[Planes]:
     """Contact planes against a mesh obstacle: vertex-face (time of impact and proximity), corners, edges."""
     r = frame.thickness + frame.reach
     E, T = frame.edges, frame.faces
@@ -386,20 +361,20 @@ def _mesh(frame: Frame, k: int, shape, p0, p1, h) -> list[Planes]:
     if pv:
         pairs = np.unique(np.column_stack([np.concatenate([a for a, _ in pv]),
                                            np.concatenate([b for _, b in pv])]), axis=0)
-        out.append(_mesh_vertex_face(frame, k, shape, pairs[:, 0], pairs[:, 1], p0, p1, h))
+        out.append(_mesh_vertex_face(frame, k, shape, pairs[:, 0], pairs[:, 1], p0, p1))
     if broadphase.EDGE_QUAD in cand:
         ei, fi = cand[broadphase.EDGE_QUAD]
         pairs = np.unique(np.column_stack([np.repeat(en[ei], 3), shape.face_edges[fi].ravel()]), axis=0)
-        out.append(_edge_pairs(frame, k, shape, shape.feature_edges, p0, p1, h, pairs=(pairs[:, 0], pairs[:, 1]),
+        out.append(_edge_pairs(frame, k, shape, shape.feature_edges, p0, p1, pairs=(pairs[:, 0], pairs[:, 1]),
                                target_fraction=EDGE_FRACTION))
     if broadphase.TRIANGLE in cand:
         ti, fi = cand[broadphase.TRIANGLE]
         pairs = np.unique(np.column_stack([np.repeat(tn[ti], 3), shape.faces[fi].ravel()]), axis=0)
-        out.append(_corners(frame, k, shape, shape.vertices, p0, p1, h, pairs=(pairs[:, 0], pairs[:, 1])))
+        out.append(_corners(frame, k, shape, shape.vertices, p0, p1, pairs=(pairs[:, 0], pairs[:, 1])))
     return out
 
 
-def _mesh_vertex_face(frame: Frame, k: int, shape, vi, fi, p0, p1, h) -> Planes:
+def _mesh_vertex_face(frame: Frame, k: int, shape, vi, fi, p0, p1) -> Planes:
     """Cloth vertices ``vi`` against mesh faces ``fi``: the earliest crossing, else the nearest face within th."""
     th = frame.thickness
     F, V = shape.faces[fi], shape.vertices
@@ -417,7 +392,7 @@ def _mesh_vertex_face(frame: Frame, k: int, shape, vi, fi, p0, p1, h) -> Planes:
         Ps = P0[j] + s[j, None] * (P1[j] - P0[j])
         off = np.einsum("ij,ij->i", n, A[j]) + th
         viol = off - np.einsum("ij,ij->i", n, P1[j])
-        parts.append(make(vi[j], k, n, off, Ps, VERTEX, viol, _approach(P0[j], P1[j], n, h)))
+        parts.append(make(vi[j], k, n, off, Ps, VERTEX, viol))
     q, _ = ccd.point_triangle_closest(P1, A, B, C)
     gap = P1 - q
     dist = np.sqrt(np.einsum("ij,ij->i", gap, gap))
@@ -425,5 +400,5 @@ def _mesh_vertex_face(frame: Frame, k: int, shape, vi, fi, p0, p1, h) -> Planes:
     if len(j):
         n = gap[j] / dist[j, None]
         off = np.einsum("ij,ij->i", n, q[j]) + th
-        parts.append(make(vi[j], k, n, off, q[j], VERTEX, th - dist[j], _approach(P0[j], P1[j], n, h)))
+        parts.append(make(vi[j], k, n, off, q[j], VERTEX, th - dist[j]))
     return Planes.cat(parts)
