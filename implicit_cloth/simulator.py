@@ -217,13 +217,34 @@ class Simulator:
     # ------------------------------------------------------------------ stepping
     def _substep(self, state: State, h: float, newton: int | None = None) -> tuple[State, Any]:
         """One step of ``h`` from ``state`` (:meth:`_obstacle_substep`), then self-collision if declared (it
-        corrects the proposed state in place, after the obstacles, without moving the vertices they hold)."""
+        corrects the proposed state after the obstacles, without moving the vertices they hold).
+
+        With an implicit method, the vertices self-collision moved are then prescribed their corrected motion
+        and the step is solved again (with the obstacles), so that their neighbours follow within the step
+        instead of being left behind by a large step (springs stretched at each correction: energy from
+        nowhere); self-collision corrects what that solve proposes.
+        """
         new, info = self._obstacle_substep(state, h, newton)
-        if self.self_collider is not None:
-            self.self_collider.step(state, new, h, self.collider)
+        sc = self.self_collider
+        if sc is None:
+            return new, info
+        resolve = None
+        if isinstance(self.integrator, ImplicitIntegrator):
+            first = info
+
+            def resolve(idx: np.ndarray, vel: np.ndarray) -> State:
+                nonlocal info
+                again, info = self._obstacle_substep(state, h, newton, self._pins.with_pins(idx, vel))
+                info.absorb(first)
+                if info.collision is not None and first.collision is not None:
+                    info.collision.t_collision += first.collision.t_collision
+                return again
+
+        new = sc.step(state, new, h, self.collider, resolve)
         return new, info
 
-    def _obstacle_substep(self, state: State, h: float, newton: int | None = None) -> tuple[State, Any]:
+    def _obstacle_substep(self, state: State, h: float, newton: int | None = None,
+                          pins: Constraints | None = None) -> tuple[State, Any]:
         """One integrator step of ``h`` seconds from ``state``, with contacts and strain limiting if declared.
 
         The unit that adaptive stepping discards and redoes (with Newton iterations, or a smaller ``h``).
@@ -233,10 +254,11 @@ class Simulator:
         corrected state. ``newton``: Newton iterations asked for (None: the solver's setting).
         """
         col = self.collider
+        pins = self._pins if pins is None else pins
         if col is not None and self.integrator.implicit:
-            return col.step(self.integrator, state, h, self._pins, self.strain_limiter, newton)
+            return col.step(self.integrator, state, h, pins, self.strain_limiter, newton)
         if isinstance(self.integrator, ImplicitIntegrator):
-            new, info = self.integrator.step(state, h, self._pins, newton=newton)
+            new, info = self.integrator.step(state, h, pins, newton=newton)
         else:
             new, info = self.integrator.step(state, h)
         if self.strain_limiter is not None:

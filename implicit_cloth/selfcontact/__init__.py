@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -69,6 +69,8 @@ class SelfInfo:
         Impact zones at the end.
     unresolved : int
         Impacts left when the fail-safe gave up (its iteration cap): 0 unless reported.
+    resolved : int
+        Vertices prescribed their corrected motion in the step's second solve (implicit methods), 0 if none.
     t_broad, t_self : float
         Wall time of the broad phase and of the whole stage, s.
     """
@@ -80,8 +82,21 @@ class SelfInfo:
     zone_vertices: int = 0
     zones: int = 0
     unresolved: int = 0
+    resolved: int = 0
     t_broad: float = 0.0
     t_self: float = 0.0
+
+    def merge(self, second: "SelfInfo", resolved: int) -> None:
+        """The figures of the second pass of the same step (after the solve again with ``resolved`` vertices
+        prescribed): impulses summed, the impact zones and what is unresolved the second pass's."""
+        self.t_self += second.t_self
+        self.t_broad += second.t_broad
+        self.candidates = max(self.candidates, second.candidates)
+        self.proximities += second.proximities
+        self.impacts += second.impacts
+        self.rounds = max(self.rounds, second.rounds)
+        self.zone_vertices, self.zones, self.unresolved = second.zone_vertices, second.zones, second.unresolved
+        self.resolved = resolved
 
     def absorb(self, other: "SelfInfo", accepted: bool = True) -> None:
         """Add a later substep's figures (counts summed, time summed; a discarded one adds only its time)."""
@@ -89,7 +104,7 @@ class SelfInfo:
         self.t_broad += other.t_broad
         if not accepted:
             return
-        for k in ("candidates", "proximities", "impacts", "zone_vertices", "zones", "unresolved"):
+        for k in ("candidates", "proximities", "impacts", "zone_vertices", "zones", "unresolved", "resolved"):
             setattr(self, k, getattr(self, k) + getattr(other, k))
         self.rounds = max(self.rounds, other.rounds)
 
@@ -182,14 +197,32 @@ class SelfCollider:
         return info
 
     # ------------------------------------------------------------------ in the step, and the run's totals
-    def step(self, before: Any, after: Any, h: float, collider: Any = None) -> SelfInfo:
-        """:meth:`respond` within a run: the attempt is booked, and counted once a later step starts from it."""
+    def step(self, before: Any, after: Any, h: float, collider: Any = None,
+             resolve: Callable[[np.ndarray, np.ndarray], Any] | None = None) -> Any:
+        """:meth:`respond` within a run; returns the step's end state. The attempt is booked, and counted once a
+        later step starts from it.
+
+        ``resolve(idx, vel)``: the step solved again with vertices ``idx`` prescribed to end it with velocity
+        ``vel`` (their corrected motion); when given, the vertices moved by :meth:`respond` are so prescribed and
+        what that solve proposes is corrected again (:meth:`respond`), the end state. The second solve lets
+        the corrected vertices' neighbours follow them within the step: corrections made after a large step
+        alone leave the springs around them stretched (the step's energy would rise).
+        """
         self.totals.accept(before)
         if not (np.all(np.isfinite(after.x)) and np.all(np.isfinite(after.v))):
-            return SelfInfo()
+            return after
+        proposed = after.x.copy()
         info = self.respond(before, after, h, collider)
+        if resolve is not None:
+            moved = np.flatnonzero(np.any(after.x != proposed, axis=1))
+            if len(moved):
+                again = resolve(moved, (after.x[moved] - before.x[moved]) / h)
+                if np.all(np.isfinite(again.x)) and np.all(np.isfinite(again.v)):
+                    second = self.respond(before, again, h, collider)
+                    info.merge(second, resolved=len(moved))
+                    after = again
         self.totals.attempt(after, info)
-        return info
+        return after
 
     def report(self, state: Any, health: Any) -> dict[str, Any]:
         """The report's ``self_collision`` section (the run's accepted steps), unresolved impacts into ``health``."""
@@ -202,7 +235,8 @@ class SelfCollider:
             "thickness": self.thickness, "friction": self.friction,
             "steps": tot.steps, "candidates": a.candidates, "mean_candidates": a.candidates / n,
             "proximities": a.proximities, "impacts": a.impacts, "mean_impacts": a.impacts / n,
-            "max_rounds": a.rounds, "zone_steps": tot.zone_steps, "zone_vertices": a.zone_vertices,
+            "max_rounds": a.rounds, "resolve_steps": tot.resolve_steps, "resolved_vertices": a.resolved,
+            "zone_steps": tot.zone_steps, "zone_vertices": a.zone_vertices,
             "max_zone_vertices": tot.max_zone_vertices, "unresolved_steps": tot.unresolved_steps,
             "time": a.t_self, "broad_phase_time": a.t_broad, "mean_time_per_step": a.t_self / n,
         }
@@ -217,7 +251,7 @@ class SelfTotals:
 
     def reset(self, state: Any) -> None:
         self.sum = SelfInfo()
-        self.steps = self.zone_steps = self.max_zone_vertices = self.unresolved_steps = 0
+        self.steps = self.zone_steps = self.max_zone_vertices = self.unresolved_steps = self.resolve_steps = 0
         self.first_unresolved = 0.0
         self.worst_unresolved = 0
         self._pending: list[tuple[Any, SelfInfo]] = []
@@ -235,6 +269,7 @@ class SelfTotals:
             if ok:
                 self.steps += 1
                 self.zone_steps += int(info.zone_vertices > 0)
+                self.resolve_steps += int(info.resolved > 0)
                 self.max_zone_vertices = max(self.max_zone_vertices, info.zone_vertices)
                 if info.unresolved:
                     if not self.unresolved_steps:

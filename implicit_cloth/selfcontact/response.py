@@ -237,12 +237,12 @@ class Response:
             dn = np.maximum(-vn, 0.0)       # inelastic: pushing the pair apart would lift it from nowhere
             info.proximities += int(np.count_nonzero(dn > 0))
             self._apply(vb, v1, idx, cn, nn, dn, inv, mu)
-        # impacts
+        # impacts: each round tests again only the pairs with a vertex the last round moved
+        toi = _Impacts(self)
         hit = np.zeros(pairs.count, dtype=bool)
         for _ in range(self.rounds):
             x1 = x0 + h * vb
-            pairs = self._fresh(pairs, x0, x1, inv)
-            s, n = impacts(x0, x1, pairs.idx, pairs.vf, self.tol, pairs.d0)
+            pairs, s, n = toi.update(pairs, x0, x1, inv)
             hit = np.isfinite(s)
             info.rounds += 1
             if not np.any(hit):
@@ -254,13 +254,15 @@ class Response:
             vn = _dot(np.einsum("ik,ikj->ij", c, vb[idx]), n_)
             sep = IMPACT_SEPARATION * th / np.maximum((1.0 - s_) * h, 1e-12)
             dn = np.where(vn < 0, np.minimum(-vn, sep) - vn, 0.0)
+            before = vb.copy()
             self._apply(vb, v1, idx, c, n_, dn, inv, mu)
+            toi.moved(np.any(vb != before, axis=1))
         else:
             x1 = x0 + h * vb
-            pairs = self._fresh(pairs, x0, x1, inv)
-            hit = np.isfinite(impacts(x0, x1, pairs.idx, pairs.vf, self.tol, pairs.d0)[0])
+            pairs, s, _ = toi.update(pairs, x0, x1, inv)
+            hit = np.isfinite(s)
         if np.any(hit):
-            self._zones(x0, vb, v1, h, inv, pairs, hit, info)
+            self._zones(x0, vb, v1, h, inv, pairs, hit, info, toi)
         moved = np.any(vb != vb0, axis=1)
         after.x[moved] = x0[moved] + h * vb[moved]
 
@@ -279,7 +281,7 @@ class Response:
         return Pairs.find(x0, x1, self.faces, self.edges, self.th, inv)
 
     # ------------------------------------------------------------------ rigid impact zones
-    def _zones(self, x0, vb, v1, h, inv, pairs: Pairs, hit, info) -> None:
+    def _zones(self, x0, vb, v1, h, inv, pairs: Pairs, hit, info, toi: "_Impacts") -> None:
         n = len(x0)
         label = np.full(n, -1, dtype=np.int64)
         for _ in range(MAX_ZONE_PASSES):
@@ -302,10 +304,12 @@ class Response:
             _, label_m = np.unique(comp[members], return_inverse=True)
             label[:] = -1
             label[members] = label_m
+            before = vb.copy()
             self._rigid(x0, vb, v1, h, inv, label)
+            toi.moved(np.any(vb != before, axis=1))
             x1 = x0 + h * vb
-            pairs = self._fresh(pairs, x0, x1, inv)
-            hit = np.isfinite(impacts(x0, x1, pairs.idx, pairs.vf, self.tol, pairs.d0)[0])
+            pairs, s, _ = toi.update(pairs, x0, x1, inv)
+            hit = np.isfinite(s)
             if not np.any(hit):
                 break
         info.unresolved = int(hit.sum())
@@ -344,6 +348,33 @@ class Response:
         x1 = x0[zv] + h * rigid_velocities(x0[zv], vb[zv], m, z, nz, h)
         vb[zv] = (x1 - x0[zv]) / h
         v1[zv] = rigid_velocities(x1, v1[zv], m, z, nz, None)
+
+
+class _Impacts:
+    """The times of impact of one step's candidates, kept between the rounds: after a round only the pairs with a
+    vertex it moved are tested again (a pair's time of impact depends on its four vertices' motion only), all of
+    them when the candidates were searched again."""
+
+    def __init__(self, response: Response) -> None:
+        self.r = response
+        self.pairs: Pairs | None = None
+        self.s = self.n = np.zeros(0)
+        self.changed: np.ndarray | None = None
+
+    def moved(self, changed: np.ndarray) -> None:
+        self.changed = changed if self.changed is None else (self.changed | changed)
+
+    def update(self, pairs: Pairs, x0: np.ndarray, x1: np.ndarray, inv: np.ndarray
+               ) -> tuple[Pairs, np.ndarray, np.ndarray]:
+        fresh = self.r._fresh(pairs, x0, x1, inv)
+        if fresh is not self.pairs or self.changed is None:
+            self.s, self.n = impacts(x0, x1, fresh.idx, fresh.vf, self.r.tol, fresh.d0)
+        else:
+            sel = np.flatnonzero(np.any(self.changed[fresh.idx], axis=1))
+            if len(sel):
+                self.s[sel], self.n[sel] = impacts(x0, x1, fresh.idx[sel], fresh.vf[sel], self.r.tol, fresh.d0[sel])
+        self.pairs, self.changed = fresh, None
+        return fresh, self.s, self.n
 
 
 def _sums(z: np.ndarray, nz: int, w: np.ndarray) -> np.ndarray:
