@@ -93,6 +93,12 @@ def crumple(n: int, dt: float, material: str, duration: float) -> dict:
             "collision": {"thickness": TH, "self_collision": True}}
 
 
+def _balanced(traj):
+    """The run's own energy balance held at every step: no energy created, no impact left (status ok)."""
+    assert traj.report["health"] == [], traj.report["health"]
+    assert traj.report["status"] == "ok"
+
+
 def _rod_depth(x):
     r = np.linalg.norm(x[:, [0, 2]] - [0.1, 0.04], axis=1)
     return float(np.max(0.03 - r, initial=0.0))
@@ -115,8 +121,7 @@ def test_a_crumpled_sheet_piles_onto_itself_without_crossing(n, dt, material, du
     assert e.max() - e[0] <= 0.02 * sim.model.total_mass * G * 1.0
     rep = traj.report["self_collision"]
     assert rep["unresolved_steps"] == 0 and rep["proximities"] > 0
-    assert traj.report["status"] in ("ok", "warning")
-    assert not [h for h in traj.report["health"] if h["criterion"] == "self_collision"]
+    _balanced(traj)
 
 
 def _two_sheets_mesh(path, n=10):
@@ -132,10 +137,28 @@ def _two_sheets_mesh(path, n=10):
 
 
 def _on_sphere(cloth):
-    return {"simulation": {"dt": 1 / 60, "duration": 1.2, "frame_rate": 30},
+    return {"simulation": {"dt": 1 / 60, "duration": 0.8, "frame_rate": 30},
             "cloth": cloth, "effects": {"gravity": [0.0, 0.0, -G]},
             "obstacles": [{"shape": "sphere", "radius": 0.3, "friction": 0.3}],
             "collision": {"thickness": TH, "self_collision": True}}
+
+
+def _radial_gaps(x, faces, n_lower):
+    """How many upper-sheet vertices have the lower sheet between them and the sphere's centre, and their
+    distances beyond it along that ray (Moller-Trumbore against every lower triangle, brute force)."""
+    low = faces[np.all(faces < n_lower, axis=1)]
+    d = x[n_lower:] / np.linalg.norm(x[n_lower:], axis=1)[:, None]                  # rays from the centre
+    a, e1, e2 = x[low[:, 0]], x[low[:, 1]] - x[low[:, 0]], x[low[:, 2]] - x[low[:, 0]]
+    h = np.cross(d[:, None, :], e2[None])
+    det = np.einsum("ijk,jk->ij", h, e1)
+    inv = 1.0 / np.where(np.abs(det) > 1e-15, det, np.inf)
+    s = np.broadcast_to(-a[None], h.shape)
+    q = np.cross(s, e1[None])
+    u, v = inv * np.einsum("ijk,ijk->ij", s, h), inv * np.einsum("ik,ijk->ij", d, q)
+    t = inv * np.einsum("jk,ijk->ij", e2, q)
+    t = np.where((u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0), t, np.inf).min(axis=1)
+    over = np.isfinite(t)
+    return int(over.sum()), np.linalg.norm(x[n_lower:], axis=1)[over] - t[over]
 
 
 def _check_stack(sim, traj, frames, cross, n_lower):
@@ -143,14 +166,14 @@ def _check_stack(sim, traj, frames, cross, n_lower):
     x = frames[-1][2]
     assert np.all(np.isfinite(x))
     assert np.linalg.norm(np.array([f[2] for f in frames]), axis=2).min() >= 0.3 - 0.2 * TH   # the sphere holds
-    # the upper sheet ends above the lower one where they lie on the sphere's top
-    top_lower = x[:n_lower][np.argmin(np.linalg.norm(x[:n_lower, :2], axis=1))]
-    up = x[n_lower:]
-    top_upper = up[np.argmin(np.linalg.norm(up[:, :2] - top_lower[:2], axis=1))]
-    assert top_upper[2] > top_lower[2] + 0.5 * TH
+    # the upper sheet ends above the lower one: every upper vertex over the lower sheet (seen from the sphere's
+    # centre) is farther out than the lower sheet along its ray
+    over, gap = _radial_gaps(x, sim.model.faces, n_lower)
+    assert over >= n_lower // 2 and gap.min() > 0.0
     e = np.array([en for _, en, _ in frames])
     assert e.max() - e[0] <= 0.02 * sim.model.total_mass * G * 1.0
     assert traj.report["self_collision"]["unresolved_steps"] == 0
+    _balanced(traj)
 
 
 @pytest.mark.slow
@@ -173,24 +196,45 @@ def test_two_stacked_cloth_pieces_drop_on_a_sphere():
     assert traj.report["pieces"][1]["vertices"] == [100, 200]
 
 
+def _layered(x, rest, spacing):
+    """Vertices with another vertex within 1.5 cm that was more than three grid spacings away at rest: two
+    layers of the cloth lying on each other."""
+    pairs = cKDTree(x).query_pairs(0.015, output_type="ndarray")
+    far = np.linalg.norm(rest[pairs[:, 0]] - rest[pairs[:, 1]], axis=1) > 3 * spacing
+    return len(np.unique(pairs[far]))
+
+
+def _towel(self_collision):
+    n = 16
+    return n, {"simulation": {"dt": 1 / 60, "duration": 1.2, "frame_rate": 30},
+               "cloth": {"resolution": [n, n], "size": [0.6, 0.6], "plane": "xy", "center": [0.0, 0.0, 0.01],
+                         "material": "cotton",
+                         "pins": [{"vertices": list(range(n * (n - 1), n * n)), "velocity": [0.0, -0.5, 0.05]}]},
+               "effects": {"gravity": [0.0, 0.0, -G]},
+               "obstacles": [{"shape": "plane", "friction": 0.8}],
+               "collision": {"thickness": TH, "self_collision": self_collision}}
+
+
 @pytest.mark.slow
 def test_a_towel_folded_onto_itself_by_moving_pins():
-    n = 16
-    scene = {"simulation": {"dt": 1 / 60, "duration": 1.2, "frame_rate": 30},
-             "cloth": {"resolution": [n, n], "size": [0.6, 0.6], "plane": "xy", "center": [0.0, 0.0, 0.01],
-                       "material": "cotton",
-                       "pins": [{"vertices": list(range(n * (n - 1), n * n)), "velocity": [0.0, -0.5, 0.01]}]},
-             "effects": {"gravity": [0.0, 0.0, -G]},
-             "obstacles": [{"shape": "plane", "friction": 0.5}],
-             "collision": {"thickness": TH, "self_collision": True}}
+    """A towel on the floor, one edge pinned and carried over it (0.5 m/s across, rising 5 cm/s): it folds
+    onto itself. Without self-collision the fold passes through the towel."""
+    n, scene = _towel(True)
     sim, traj, frames, cross = judged(scene)
     assert cross == [0] * len(frames)
     xs = np.array([x for _, _, x in frames])
     assert np.all(np.isfinite(xs)) and xs[..., 2].min() >= 0.5 * TH
-    # folded: the pinned edge now lies over the towel's far half, above it
+    # folded: the pinned edge was carried over the towel, and two layers lie on each other
     assert xs[-1, n * (n - 1):, 1].mean() < -0.2
-    assert traj.report["self_collision"]["unresolved_steps"] == 0
-    assert traj.report["self_collision"]["impacts"] + traj.report["self_collision"]["proximities"] > 0
+    assert _layered(xs[-1], xs[0], 0.6 / (n - 1)) > 0
+    sc = traj.report["self_collision"]
+    assert sc["unresolved_steps"] == 0 and sc["impacts"] + sc["proximities"] > 0
+    # energy from the states: no more than the pins' work (which the run reports at each frame)
+    e = np.array([en for _, en, _ in frames])
+    w = np.array(traj.report["frames"]["pin_work"])
+    assert np.max(e - e[0] - w) <= 0.02 * sim.model.total_mass * G * 1.0
+    _balanced(traj)
+    assert max(judged(_towel(False)[1])[3]) > 0
 
 
 def test_layers_that_start_nearer_than_the_thickness_are_an_error(tmp_path):

@@ -21,6 +21,11 @@ stage have proposed ``(x1, v1)`` from the collision-free start ``x0``, the step'
    (Bridson et al. §7.4; Provot 1997), which cannot cross itself; zones that still hit merge, until no
    impact is left. The zones used are reported.
 
+5. **Solved again** (implicit methods, :meth:`SelfCollider.step`): a correction made after a large step alone
+   leaves the springs around the corrected vertex stretched by its neighbours' uncorrected motion (energy
+   from nowhere), so the vertices moved are prescribed their corrected motion and the step is solved again
+   (with the obstacles); what that solve proposes is corrected again (1-4), at most ``MAX_RESOLVES`` times.
+
 Every impulse is equal and opposite between the pair's two primitives (weighted by the barycentric
 coefficients and inverse masses) and never raises the pair's relative normal speed, so it conserves
 momentum and takes kinetic energy away; a rigid zone's motion is the projection of its velocities onto
@@ -45,6 +50,8 @@ from ..errors import SceneError
 from . import broadphase
 from .response import Pairs, Response, cloth_edges, pair_distances
 
+#: Most solves again per step with the corrected vertices prescribed (each pass's corrected vertices join them).
+MAX_RESOLVES = 2
 #: A vertex within this many thicknesses of an obstacle at the end of the step is held by it (not moved here).
 CONTACT_BAND = 1.5
 
@@ -141,6 +148,7 @@ class SelfCollider:
         #: run totals of the accepted steps (:class:`SelfTotals`)
         self.totals = SelfTotals()
         self.response = Response(self.faces, self.edges, self.masses, self.thickness, self.friction, self.rounds)
+        self.last_pairs: Pairs | None = None
         self._check_start(model.rest_positions)
 
     def _check_start(self, x: np.ndarray) -> None:
@@ -176,11 +184,15 @@ class SelfCollider:
                 wall[near] = n_loc @ ob.motion.pose(t)[1].T
         return wall
 
-    def respond(self, before: Any, after: Any, h: float, collider: Any = None) -> SelfInfo:
+    def respond(self, before: Any, after: Any, h: float, collider: Any = None,
+                pairs: Pairs | None = None) -> SelfInfo:
         """Correct the proposed state ``after`` in place so that the cloth does not pass through itself.
 
         ``before`` is the collision-free state at the start of the step, ``collider`` the obstacle stage
-        (or None): the vertices it holds are not moved.
+        (or None): the vertices it holds are not moved. ``pairs``: candidates of an earlier pass of this step,
+        used again while no vertex's end is farther than ``REBUILD_FRACTION`` thicknesses from where they
+        were searched (:class:`~implicit_cloth.selfcontact.response.Response`). The candidates the pass ended
+        with are kept in ``last_pairs``.
         """
         t0 = time.perf_counter()
         inv = self.inv_mass
@@ -188,11 +200,13 @@ class SelfCollider:
         info = SelfInfo()
         x0, x1 = before.x, after.x
         tb = time.perf_counter()
-        pairs = Pairs.find(x0, x1, self.faces, self.edges, self.thickness, inv)
+        if pairs is None:
+            pairs = Pairs.find(x0, x1, self.faces, self.edges, self.thickness, inv)
         info.t_broad = time.perf_counter() - tb
         info.candidates = pairs.count
         if pairs.count:
-            self.response.run(x0, after, h, inv, pairs, info, wall)
+            pairs = self.response.run(x0, after, h, inv, pairs, info, wall)
+        self.last_pairs = pairs
         info.t_self = time.perf_counter() - t0
         return info
 
@@ -204,7 +218,9 @@ class SelfCollider:
 
         ``resolve(idx, vel)``: the step solved again with vertices ``idx`` prescribed to end it with velocity
         ``vel`` (their corrected motion); when given, the vertices moved by :meth:`respond` are so prescribed and
-        what that solve proposes is corrected again (:meth:`respond`), the end state. The second solve lets
+        what that solve proposes is corrected again (:meth:`respond`), up to ``MAX_RESOLVES`` times while a
+        pass moves vertices not yet prescribed (they join the prescribed ones); the last pass's state is the
+        end state. The second solve lets
         the corrected vertices' neighbours follow them within the step: corrections made after a large step
         alone leave the springs around them stretched (the step's energy would rise).
         """
@@ -213,14 +229,20 @@ class SelfCollider:
             return after
         proposed = after.x.copy()
         info = self.respond(before, after, h, collider)
-        if resolve is not None:
-            moved = np.flatnonzero(np.any(after.x != proposed, axis=1))
-            if len(moved):
-                again = resolve(moved, (after.x[moved] - before.x[moved]) / h)
-                if np.all(np.isfinite(again.x)) and np.all(np.isfinite(again.v)):
-                    second = self.respond(before, again, h, collider)
-                    info.merge(second, resolved=len(moved))
-                    after = again
+        fixed = np.zeros(len(proposed), dtype=bool)
+        for _ in range(MAX_RESOLVES if resolve is not None else 0):
+            moved = np.any(after.x != proposed, axis=1)
+            if not np.any(moved):
+                break
+            fixed |= moved
+            idx = np.flatnonzero(fixed)
+            assert resolve is not None
+            again = resolve(idx, (after.x[idx] - before.x[idx]) / h)
+            if not (np.all(np.isfinite(again.x)) and np.all(np.isfinite(again.v))):
+                break
+            proposed = again.x.copy()
+            info.merge(self.respond(before, again, h, collider, self.last_pairs), resolved=len(idx))
+            after = again
         self.totals.attempt(after, info)
         return after
 

@@ -220,9 +220,10 @@ class Response:
         self.tol = IMPACT_TOLERANCE * thickness
 
     def run(self, x0: np.ndarray, after: Any, h: float, inv: np.ndarray, pairs: Pairs, info: Any,
-            wall: np.ndarray | None = None) -> None:
+            wall: np.ndarray | None = None) -> Pairs:
         """Correct ``after`` (x, v) in place; ``inv`` the inverse masses (0: not moved), ``wall`` the normals of
-        the obstacles holding vertices (:func:`impulses`; held vertices anchor impact zones)."""
+        the obstacles holding vertices (:func:`impulses`; held vertices anchor impact zones). Returns the
+        candidates as last searched."""
         self.wall = wall
         th, mu = self.th, self.mu
         vb = (after.x - x0) / h
@@ -265,6 +266,7 @@ class Response:
             self._zones(x0, vb, v1, h, inv, pairs, hit, info, toi)
         moved = np.any(vb != vb0, axis=1)
         after.x[moved] = x0[moved] + h * vb[moved]
+        return toi.pairs if toi.pairs is not None else pairs
 
     def _apply(self, vb, v1, idx, c, n, dn, inv, mu) -> None:
         """The impulses on the average velocity, and on the end velocity only what removes its approach."""
