@@ -7,8 +7,9 @@ between layers, simulated for ``--duration`` s (it folds and piles onto itself f
 
 * ms per step split into the solve (assembly, preconditioner set-up, PCG), the obstacle collision stage and
   self-collision (the run report's timings; the machine is shared, so read them as shares of the step);
-* candidates, proximity impulses and impacts per step, steps that used impact zones and their vertices, the
-  impacts left unresolved (must be 0);
+* candidates, proximity impulses and impacts per step, steps solved again with the corrected vertices
+  prescribed (and those vertices per step), steps that used impact zones and their vertices, the impacts left
+  unresolved (must be 0);
 * crossings: edges through triangles (sharing no vertex) at every kept frame, judged by ipctk's
   ``has_intersections`` (an independent implementation) and counted by this script's own segment-triangle test
   (must be 0);
@@ -24,6 +25,7 @@ Usage::
     python benchmarks/self_collision.py                  # 32², 64², 128² (long: tens of minutes on 2 cores)
     python benchmarks/self_collision.py --quick          # CI smoke: 10² and 14², 0.3 s
     python benchmarks/self_collision.py --sizes 32 64 --duration 2.0 --broad-phase
+    python benchmarks/self_collision.py --sizes 32 --save out/     # out/crumple_32 for implicit-cloth render
 """
 
 from __future__ import annotations
@@ -88,11 +90,15 @@ def ipc_intersecting(x: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> boo
     return bool(ipctk.has_intersections(ipctk.CollisionMesh(x, edges, faces), x))
 
 
-def run_row(n: int, dt: float, duration: float) -> dict:
+def run_row(n: int, dt: float, duration: float, save: Path | None = None) -> dict:
     sim = ic.Simulator(crumple(n, dt, duration))
     t0 = time.perf_counter()
     traj = sim.run()
     wall = time.perf_counter() - t0
+    if save is not None:      # a run directory as `implicit-cloth run` writes it (for `implicit-cloth render`)
+        from implicit_cloth.files import write_run
+
+        write_run(save / f"crumple_{n}", traj, sim.scene.data)
     rep = traj.report
     faces = traj.faces
     edges = edge_list(faces)
@@ -111,6 +117,7 @@ def run_row(n: int, dt: float, duration: float) -> dict:
         "candidates_per_step": sc["candidates"] / max(sc["steps"], 1),
         "proximities_per_step": sc["proximities"] / max(sc["steps"], 1),
         "impacts_per_step": sc["impacts"] / max(sc["steps"], 1),
+        "resolve_steps": sc["resolve_steps"], "resolved_vertices_per_step": sc["resolved_vertices"] / max(sc["steps"], 1),
         "zone_steps": sc["zone_steps"], "zone_vertices": sc["zone_vertices"],
         "max_zone_vertices": sc["max_zone_vertices"], "unresolved_steps": sc["unresolved_steps"],
         "max_crossings": max(crossings), "ipctk_intersecting_frames": None if ipc[0] is None else int(sum(ipc)),
@@ -183,8 +190,9 @@ def markdown(res: dict) -> str:
              f"cotton, dt = {res['dt']:.4g} s (adaptive), {res['duration']:g} s simulated, thickness 5 mm; "
              "ms per accepted substep; the machine is shared (2 cores), so read the times as shares.", "",
              "| size | substeps | ms/step | solve | obstacles | self (broad) | self share | candidates | "
-             "proximities | impacts | zone steps (vertices) | unresolved | crossings | ipctk says | status |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "proximities | impacts | solved again (vertices) | zone steps (vertices) | unresolved | crossings | "
+             "ipctk says | status |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         ipc = "n/a" if r["ipctk_intersecting_frames"] is None else \
             ("none" if r["ipctk_intersecting_frames"] == 0 else f"{r['ipctk_intersecting_frames']} frames")
@@ -192,7 +200,7 @@ def markdown(res: dict) -> str:
             f"| {r['resolution']}² | {r['substeps']} | {r['ms_step']:.0f} | {r['ms_solve']:.0f} | "
             f"{r['ms_obstacles']:.0f} | {r['ms_self']:.0f} ({r['ms_self_broad']:.0f}) | {100 * r['self_share']:.0f} % | "
             f"{r['candidates_per_step']:.0f} | {r['proximities_per_step']:.1f} | {r['impacts_per_step']:.2f} | "
-            f"{r['zone_steps']} ({r['max_zone_vertices']}) | {r['unresolved_steps']} | {r['max_crossings']} | {ipc} | "
+            f"{r['resolve_steps']} ({r['resolved_vertices_per_step']:.1f}) | {r['zone_steps']} ({r['max_zone_vertices']}) | {r['unresolved_steps']} | {r['max_crossings']} | {ipc} | "
             f"{r['status']} |")
     ex = res.get("self_exponent")
     lines += ["", f"Self-collision's cost per step ~ N^{ex:.2f} over the sizes (goal <= 1.2)." if ex is not None else ""]
@@ -215,11 +223,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=2.0)
     ap.add_argument("--broad-phase", action="store_true", help="also time the broad phases (ours, ipctk's)")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    ap.add_argument("--save", type=Path, default=None,
+                    help="also write each run's trajectory.npz and report.json to SAVE/crumple_N (to render it)")
     args = ap.parse_args(argv)
     sizes, duration = ([10, 14], 0.3) if args.quick else (args.sizes, args.duration)
     rows = []
     for n in sizes:
-        rows.append(run_row(n, args.dt, duration))
+        rows.append(run_row(n, args.dt, duration, args.save))
         r = rows[-1]
         print(f"{n}²: {r['ms_step']:.0f} ms/step, self {100 * r['self_share']:.0f} %, crossings {r['max_crossings']}, "
               f"{r['status']}", flush=True)
