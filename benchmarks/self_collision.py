@@ -98,6 +98,7 @@ def run_row(n: int, dt: float, duration: float, save: Path | None = None) -> dic
     if save is not None:      # a run directory as `implicit-cloth run` writes it (for `implicit-cloth render`)
         from implicit_cloth.files import write_run
 
+        (save / f"crumple_{n}").mkdir(parents=True, exist_ok=True)
         write_run(save / f"crumple_{n}", traj, sim.scene.data)
     rep = traj.report
     faces = traj.faces
