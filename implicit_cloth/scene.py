@@ -63,7 +63,7 @@ CLOTH_KEYS = (
 )
 COLLISION_KEYS = ("thickness", "restitution", "max_iterations", "newton_iterations")
 COLLISION_DEFAULTS: dict[str, Any] = {"thickness": 0.005, "restitution": 0.0, "max_iterations": 8,
-                                      "newton_iterations": 2}
+                                      "newton_iterations": 1}
 
 #: Largest grid (nx * ny vertices, 4096 x 4096): beyond it the arrays alone need tens of GB.
 MAX_VERTICES = 4096 * 4096

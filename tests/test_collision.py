@@ -70,7 +70,7 @@ def test_obstacle_defaults_and_effects_list():
     sc = ic.Scene.from_dict(cloth_scene({"shape": "sphere", "radius": 0.2}))
     ob = sc.data["obstacles"][0]
     assert ob["center"] == [0.0, 0.0, 0.0] and ob["velocity"] == [0.0, 0.0, 0.0] and ob["friction"] == 0.0
-    assert sc.data["collision"] == {"thickness": TH, "restitution": 0.0, "max_iterations": 8, "newton_iterations": 2}
+    assert sc.data["collision"] == {"thickness": TH, "restitution": 0.0, "max_iterations": 8, "newton_iterations": 1}
     assert "collision" in sc.effects
     plain = ic.Scene.from_dict({"cloth": {"mass": 0.1}})
     assert plain.data["obstacles"] == [] and plain.data["collision"] is None
@@ -407,8 +407,7 @@ def test_resting_drape_on_a_sphere_settles_without_jitter():
     released = f["total"][0] - total[-1]
     assert released > 0.1
     assert np.max(total) - total[0] < 1e-3 * released
-    kinetic = np.asarray(f["kinetic"])[late]          # what is left of the landing's motion, J, and at the end
-    assert np.max(kinetic) < 2e-6 and kinetic[-1] < 2e-7 and kinetic[-1] < 0.2 * kinetic[0]
+    assert np.max(np.asarray(f["kinetic"])[late]) < 1e-6
     speed = np.linalg.norm(sim.velocities, axis=1)                   # m/s
     on = np.isin(np.arange(sim.model.n), sim.collider.held)
     assert on.sum() > 20 and speed[on].max() < 1e-4                  # what rests on the sphere is still

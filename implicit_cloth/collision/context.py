@@ -48,7 +48,7 @@ def cloth_edges(faces: np.ndarray) -> np.ndarray:
 
 
 #: Default ``collision.newton_iterations`` (also for a report's scene written before the key existed).
-COLLISION_NEWTON = 2
+COLLISION_NEWTON = 1
 
 
 @dataclass
@@ -86,7 +86,7 @@ class Context:
     masses: np.ndarray
     inv_mass: np.ndarray
     friction: bool = True
-    newton: int = 2
+    newton: int = 1
 
     @classmethod
     def build(cls, obstacles: list[dict[str, Any]], settings: dict[str, Any], model: Any) -> "Context":

@@ -20,7 +20,8 @@ d. edges (:func:`~implicit_cloth.collision.features.edge_proximity`): no point o
    ``thickness / 2`` to a curved convex shape.
 
 Mesh obstacles (no signed distance) replace a, b and d by the exact tests of cloth vertices against the
-faces the broad phase (:mod:`~implicit_cloth.collision.broadphase`) proposes (:func:`~implicit_cloth.collision.mesh.mesh_round`).
+faces the broad phase (:mod:`~implicit_cloth.collision.broadphase`) proposes
+(:func:`~implicit_cloth.collision.mesh.mesh_round`).
 
 Rounds repeat until one finds nothing to correct, at most ``collision.max_iterations``. Vertices still in
 violation then are frozen to the obstacle (moved rigidly with it from their collision-free start, with its
