@@ -75,6 +75,21 @@ class ClothGeometry:
         }[name]
 
 
+def combine(pieces: list[ClothGeometry]) -> ClothGeometry:
+    """Several pieces as one cloth: vertices in order, faces and springs offset by the vertices before them.
+
+    One piece is returned as it is (a grid keeps its ``grid_shape``); the union of several has none.
+    """
+    if len(pieces) == 1:
+        return pieces[0]
+    start = np.cumsum([0] + [g.n_vertices for g in pieces])
+    kinds = [k for k in ("structural", "shear", "bend") if any(k in g.springs for g in pieces)]
+    springs = {k: np.concatenate([g.springs[k] + o for g, o in zip(pieces, start) if k in g.springs]).reshape(-1, 2)
+               for k in kinds}
+    return ClothGeometry(np.concatenate([g.positions for g in pieces]),
+                         np.concatenate([g.faces + o for g, o in zip(pieces, start)]), springs)
+
+
 def triangle_areas(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area of each triangle, m^2: ``|(x1 - x0) x (x2 - x0)| / 2``."""
     p = positions[faces]

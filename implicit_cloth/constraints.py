@@ -83,6 +83,13 @@ class Constraints:
         return Constraints(self.pinned, self.pin_velocity, idx, np.asarray(normal, dtype=float),
                            np.asarray(offset, dtype=float), np.asarray(velocity, dtype=float), st, fr)
 
+    def with_pins(self, idx: np.ndarray, velocity: np.ndarray) -> "Constraints":
+        """These constraints with vertices ``idx`` (not pinned already, in no contact) also prescribed to end the
+        step with ``velocity`` (K, 3), as pins are (self-collision's re-solve)."""
+        return Constraints(np.concatenate([self.pinned, np.asarray(idx, dtype=np.int64)]),
+                           np.concatenate([self.pin_velocity, np.asarray(velocity, dtype=float).reshape(-1, 3)]),
+                           self.contact, self.normal, self.offset, self.velocity, self.stick, self.friction)
+
     @property
     def n_contacts(self) -> int:
         return len(self.contact)

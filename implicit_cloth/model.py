@@ -23,6 +23,7 @@ from .backend import Backend, get_backend
 from .config.validate import fmt
 from .effects import Effect, SpringSet, build_effects
 from .errors import SceneError
+from .scene import cloth_pieces, piece_path
 
 
 @dataclass
@@ -64,36 +65,31 @@ class Model:
         #: the numerical back-end (numpy or numba), resolved once here: the system matrix, the springs bound
         #: to it and the preconditioner dispatch through it
         self.backend: Backend = get_backend()
-        c = scene.data["cloth"]
-        kinds = tuple(c["springs"])
-        if c["kind"] == "grid":
-            geo = _cloth.grid(c["size"], c["resolution"], c["center"], c["plane"], kinds)
-        else:
-            geo = _cloth.from_mesh(c["mesh"], c["scale"], c["translation"], kinds)
+        pieces = cloth_pieces(scene.data)
+        where = [piece_path(scene.data, k) for k in range(len(pieces))]
+        geos = [_piece_geometry(c, w) for c, w in zip(pieces, where)]
+        geo = _cloth.combine(geos)
         self.geometry = geo
-        if not np.isfinite(geo.positions).all():   # a mesh's coordinates are checked by from_mesh
-            raise SceneError(f"cloth.center: vertex positions are not finite (center + size / 2 overflows), "
-                             f"got {c.get('center')}")
+        sizes = [g.n_vertices for g in geos]
+        start = np.cumsum([0] + sizes)
+        #: each piece's vertex range ``(start, stop)`` in the cloth's numbering, in the scene's order
+        self.pieces: list[tuple[int, int]] = [(int(a), int(b)) for a, b in zip(start[:-1], start[1:])]
+        face_start = np.cumsum([0] + [len(g.faces) for g in geos])
+        #: each piece's face range ``(start, stop)``
+        self.piece_faces: list[tuple[int, int]] = [(int(a), int(b)) for a, b in zip(face_start[:-1], face_start[1:])]
         self.n = geo.n_vertices
         self.faces = geo.faces
         self.rest_positions = geo.positions.copy()
         self.areas = _cloth.lumped_areas(geo.positions, geo.faces)
-        total_area = float(self.areas.sum())
-        if c["kind"] == "grid":
-            total_mass = c["mass"] if "mass" in c else c["density"] * total_area
-            self.masses = np.full(self.n, total_mass / self.n)
-        else:
-            if np.any(self.areas <= 0):   # from_mesh's checks catch this first; kept as a safeguard
-                bad = np.flatnonzero(self.areas <= 0)
-                raise SceneError(
-                    f"cloth.mesh: vertex {bad[0]} has no area (it is in no triangle of positive area), so it "
-                    f"would have no mass ({len(bad)} such vertices: {', '.join(map(str, bad[:5]))}"
-                    f"{', ...' if len(bad) > 5 else ''}), got {c['mesh']!r}")
-            self.masses = (c["mass"] * self.areas / total_area) if "mass" in c else c["density"] * self.areas
-        self._check_masses(c)
+        self.masses = np.concatenate([_piece_masses(c, w, g, self.areas[a:b])
+                                      for c, w, g, (a, b) in zip(pieces, where, geos, self.pieces)])
+        #: initial velocity of every vertex (each piece's ``velocity``), (N, 3) m/s
+        self.initial_velocity = np.concatenate([np.broadcast_to(np.asarray(c["velocity"], dtype=float), (n, 3))
+                                                for c, n in zip(pieces, sizes)])
         self.total_mass = float(self.masses.sum())
-        self._init_pins(c["pins"])
-        self.effects: list[Effect] = build_effects(self, scene.data["effects"], c["springs"])
+        self._init_pins([(c["pins"], g, int(o)) for c, g, o in zip(pieces, geos, start)])
+        springs = pieces[0]["springs"] if len(pieces) == 1 else _spring_constants(pieces, geos)
+        self.effects: list[Effect] = build_effects(self, scene.data["effects"], springs)
         self.effect_names: list[str] = scene.effects
         #: the elastic effect made of springs (strain measures, strain limiting), None without springs
         self.springs: SpringSet | None = next((cast(SpringSet, e) for e in self.effects if e.elastic), None)
@@ -102,40 +98,30 @@ class Model:
         self.free = np.ones(self.n, dtype=bool)
         self.free[self.pinned] = False
 
-    def _check_masses(self, c: dict[str, Any]) -> None:
-        """Every vertex mass must be a positive finite number with a finite inverse (no underflow or overflow)."""
-        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-            ok = np.isfinite(self.masses) & (self.masses > 0) & np.isfinite(1.0 / self.masses)
-        if not ok.all():
-            v = int(np.flatnonzero(~ok)[0])
-            key = "mass" if "mass" in c else "density"
-            if key == "mass":
-                how = f"total {c['mass']:g} kg over {self.n} vertices"
-            elif c["kind"] == "grid":
-                how = f"{c['density']:g} kg/m^2 x area {float(self.areas.sum()):.3g} m^2 over {self.n} vertices"
-            else:
-                how = f"{c['density']:g} kg/m^2 x its area {self.areas[v]:.3g} m^2"
-            raise SceneError(f"cloth.{key}: vertex {v} would get a mass of {self.masses[v]:.3g} kg ({how}), "
-                             f"which is not a positive number with a finite inverse, got {c[key]}")
-
     # ------------------------------------------------------------------ pins
-    def _init_pins(self, groups: list[dict[str, Any]]) -> None:
+    def _init_pins(self, pieces: list[tuple[list[dict[str, Any]], Any, int]]) -> None:
+        """Pins of every piece: ``(pin groups, the piece's geometry, its first vertex)``, indices per piece."""
         idx: list[int] = []
         vel: list[list[float]] = []
         seen: dict[int, str] = {}
-        for g in groups:
-            for m, v in enumerate(g["vertices"]):
-                where = g["paths"][m]
-                p = self.geometry.corner(v, where) if isinstance(v, str) else int(v)
-                if p >= self.n:
-                    raise SceneError(where, f"vertex index out of range (the cloth has {self.n} vertices)", v)
-                if p in seen:
-                    if g["velocity"] != vel[idx.index(p)]:
-                        raise SceneError(f"{where}: vertex {p} is pinned twice with different velocities, got {fmt(v)}")
-                    continue
-                seen[p] = where
-                idx.append(p)
-                vel.append(list(g["velocity"]))
+        for groups, geo, offset in pieces:
+            for g in groups:
+                for m, v in enumerate(g["vertices"]):
+                    where = g["paths"][m]
+                    p = geo.corner(v, where) if isinstance(v, str) else int(v)
+                    if p >= geo.n_vertices:
+                        what = "cloth" if len(pieces) == 1 else "piece"
+                        raise SceneError(where, f"vertex index out of range (the {what} has {geo.n_vertices} "
+                                                f"vertices)", v)
+                    p += offset
+                    if p in seen:
+                        if g["velocity"] != vel[idx.index(p)]:
+                            raise SceneError(f"{where}: vertex {p - offset} is pinned twice with different "
+                                             f"velocities, got {fmt(v)}")
+                        continue
+                    seen[p] = where
+                    idx.append(p)
+                    vel.append(list(g["velocity"]))
         self.pinned = np.asarray(idx, dtype=np.int64)
         self.pin_velocity = np.asarray(vel, dtype=float).reshape(-1, 3)
         self.pin_anchor = self.rest_positions[self.pinned].copy()   # position at t = 0
@@ -213,3 +199,70 @@ class Model:
         for e in self.effects:
             e.linearize(x, v, t, c_x, c_v, w, sysm, kw, f)
         return sysm.finalize(), f, kw
+
+
+# ---------------------------------------------------------------------- pieces
+def _piece_geometry(c: dict[str, Any], where: str) -> _cloth.ClothGeometry:
+    """One piece's geometry (grid or mesh file); its errors name the piece (``cloth[1].mesh: ...``)."""
+    kinds = tuple(c["springs"])
+    try:
+        if c["kind"] == "grid":
+            geo = _cloth.grid(c["size"], c["resolution"], c["center"], c["plane"], kinds)
+        else:
+            geo = _cloth.from_mesh(c["mesh"], c["scale"], c["translation"], kinds)
+    except SceneError as exc:
+        msg = str(exc)
+        if where != "cloth" and msg.startswith("cloth."):
+            raise SceneError(where + msg[len("cloth"):]) from None
+        raise
+    if not np.isfinite(geo.positions).all():   # a mesh's coordinates are checked by from_mesh
+        raise SceneError(f"{where}.center: vertex positions are not finite (center + size / 2 overflows), "
+                         f"got {c.get('center')}")
+    return geo
+
+
+def _piece_masses(c: dict[str, Any], where: str, geo: _cloth.ClothGeometry, areas: np.ndarray) -> np.ndarray:
+    """Lumped vertex masses of one piece, kg: a grid's spread evenly, a mesh's by lumped area."""
+    n = geo.n_vertices
+    total_area = float(areas.sum())
+    if c["kind"] == "grid":
+        total_mass = c["mass"] if "mass" in c else c["density"] * total_area
+        masses = np.full(n, total_mass / n)
+    else:
+        if np.any(areas <= 0):   # from_mesh's checks catch this first; kept as a safeguard
+            bad = np.flatnonzero(areas <= 0)
+            raise SceneError(
+                f"{where}.mesh: vertex {bad[0]} has no area (it is in no triangle of positive area), so it "
+                f"would have no mass ({len(bad)} such vertices: {', '.join(map(str, bad[:5]))}"
+                f"{', ...' if len(bad) > 5 else ''}), got {c['mesh']!r}")
+        masses = (c["mass"] * areas / total_area) if "mass" in c else c["density"] * areas
+    _check_masses(c, where, masses, areas)
+    return masses
+
+
+def _check_masses(c: dict[str, Any], where: str, masses: np.ndarray, areas: np.ndarray) -> None:
+    """Every vertex mass must be a positive finite number with a finite inverse (no underflow or overflow)."""
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        ok = np.isfinite(masses) & (masses > 0) & np.isfinite(1.0 / masses)
+    if not ok.all():
+        n = len(masses)
+        v = int(np.flatnonzero(~ok)[0])
+        key = "mass" if "mass" in c else "density"
+        if key == "mass":
+            how = f"total {c['mass']:g} kg over {n} vertices"
+        elif c["kind"] == "grid":
+            how = f"{c['density']:g} kg/m^2 x area {float(areas.sum()):.3g} m^2 over {n} vertices"
+        else:
+            how = f"{c['density']:g} kg/m^2 x its area {areas[v]:.3g} m^2"
+        raise SceneError(f"{where}.{key}: vertex {v} would get a mass of {masses[v]:.3g} kg ({how}), "
+                         f"which is not a positive number with a finite inverse, got {c[key]}")
+
+
+def _spring_constants(pieces: list[dict[str, Any]], geos: list[_cloth.ClothGeometry]) -> dict[str, dict[str, Any]]:
+    """Per-spring stiffness and damping of several pieces, in :func:`cloth.combine`'s order of each kind."""
+    out: dict[str, dict[str, Any]] = {}
+    for kind in ("structural", "shear", "bend"):
+        have = [(c["springs"][kind], len(g.springs[kind])) for c, g in zip(pieces, geos) if kind in c["springs"]]
+        if have:
+            out[kind] = {key: np.concatenate([np.full(n, p[key]) for p, n in have]) for key in ("stiffness", "damping")}
+    return out

@@ -75,6 +75,8 @@ class Run:
     scene: Mapping[str, Any] | None
     fps: float
     _obstacles: list[Obstacle] | None = field(default=None, repr=False)
+    #: each ``[[cloth]]`` piece's vertex range ``(start, stop)`` (the report's ``pieces``), else None
+    piece_ranges: list[tuple[int, int]] | None = None
 
     @property
     def n_frames(self) -> int:
@@ -90,38 +92,54 @@ class Run:
         lo, hi = flat.min(0), flat.max(0)
         return (lo + hi) / 2, max(float(np.max(hi - lo)) / 2, 1e-3)
 
+    def _cloths(self) -> list[Mapping[str, Any]]:
+        """The stored scene's cloth pieces (``[cloth]`` is one, ``[[cloth]]`` several); [] without a scene."""
+        cloth = (self.scene or {}).get("cloth") or {}
+        pieces = cloth if isinstance(cloth, list) else [cloth]
+        return [c for c in pieces if isinstance(c, Mapping)]
+
     def pieces(self) -> list[np.ndarray]:
-        """Vertex indices of each connected piece of cloth (joined by triangles), largest first."""
+        """Vertex indices of each piece of cloth: the scene's ``[[cloth]]`` pieces in order (their vertex ranges in
+        the report), else each connected piece (joined by triangles), largest first."""
+        r = self.piece_ranges
+        if r and r[0][0] == 0 and r[-1][1] == self.positions.shape[1] and all(a < b for a, b in r):
+            return [np.arange(a, b) for a, b in r]
         return cloth_pieces(self.faces, self.positions.shape[1])
 
     def uvs(self) -> np.ndarray | None:
-        """Per-vertex texture coordinates (N, 2) of a grid cloth (``i / (nx - 1), j / (ny - 1)``), else None."""
-        cloth = (self.scene or {}).get("cloth") or {}
-        if cloth.get("kind") != "grid":
+        """Per-vertex texture coordinates (N, 2) of grid cloths (``i / (nx - 1), j / (ny - 1)`` of each piece),
+        else None."""
+        cloths = self._cloths()
+        if not cloths or any(c.get("kind") != "grid" for c in cloths):
             return None
-        nx, ny = (int(r) for r in cloth["resolution"])
-        if nx * ny != self.positions.shape[1]:
-            return None
-        jj, ii = np.divmod(np.arange(nx * ny), nx)
-        return np.stack([ii / (nx - 1), jj / (ny - 1)], axis=1)
+        out = []
+        for c in cloths:
+            nx, ny = (int(r) for r in c["resolution"])
+            jj, ii = np.divmod(np.arange(nx * ny), nx)
+            out.append(np.stack([ii / (nx - 1), jj / (ny - 1)], axis=1))
+        uv = np.concatenate(out)
+        return uv if len(uv) == self.positions.shape[1] else None
 
     def rest_positions(self) -> np.ndarray:
-        """The cloth's rest shape (N, 3), m: rebuilt from the stored scene (grid or mesh file), else frame 0."""
-        cloth = (self.scene or {}).get("cloth") or {}
+        """The cloth's rest shape (N, 3), m: rebuilt from the stored scene (grids or mesh files), else frame 0."""
+        parts = []
         try:
             from . import cloth as builders
 
-            if cloth.get("kind") == "grid":
-                geo = builders.grid(cloth["size"], cloth["resolution"], cloth["center"], cloth["plane"])
-            elif cloth.get("kind") == "mesh":
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    geo = builders.from_mesh(cloth["mesh"], cloth["scale"], cloth["translation"])
-            else:
-                return self.positions[0]
+            for c in self._cloths():
+                if c.get("kind") == "grid":
+                    geo = builders.grid(c["size"], c["resolution"], c["center"], c["plane"])
+                elif c.get("kind") == "mesh":
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        geo = builders.from_mesh(c["mesh"], c["scale"], c["translation"])
+                else:
+                    return self.positions[0]
+                parts.append(geo.positions)
         except (SceneError, KeyError, TypeError, ValueError, OSError):
             return self.positions[0]
-        return geo.positions if geo.positions.shape == self.positions.shape[1:] else self.positions[0]
+        rest = np.concatenate(parts) if parts else self.positions[0]
+        return rest if rest.shape == self.positions.shape[1:] else self.positions[0]
 
     def strain(self, frames: list[int]) -> np.ndarray:
         """Per-vertex strain (F, N) at the frames: the largest ``|x_ij| / L_ij - 1`` of the triangle edges at
@@ -252,13 +270,21 @@ def _local_mesh(spec: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
 
 
-def _report_scene(run_dir: Path) -> Mapping[str, Any] | None:
+def _report_scene(run_dir: Path) -> tuple[Mapping[str, Any] | None, list[tuple[int, int]] | None]:
+    """The stored scene and the pieces' vertex ranges of ``RUN_DIR/report.json`` (None where missing)."""
     try:
         report = json.loads((run_dir / "report.json").read_text())
     except (OSError, ValueError):
-        return None
-    scene = report.get("scene") if isinstance(report, Mapping) else None
-    return scene if isinstance(scene, Mapping) else None
+        return None, None
+    if not isinstance(report, Mapping):
+        return None, None
+    scene = report.get("scene")
+    ranges = None
+    try:
+        ranges = [(int(p["vertices"][0]), int(p["vertices"][1])) for p in report["pieces"]]
+    except (KeyError, TypeError, ValueError, IndexError):
+        pass
+    return (scene if isinstance(scene, Mapping) else None), ranges
 
 
 def run_fps(times: np.ndarray, scene: Mapping[str, Any] | None) -> float:
@@ -297,8 +323,8 @@ def read_run(run_dir: str | os.PathLike[str]) -> Run:
     from .files import check_pair
 
     check_pair(run_dir)
-    scene = _report_scene(run_dir)
+    scene, ranges = _report_scene(run_dir)
     fps = run_fps(times, scene)
     if not math.isfinite(fps) or fps <= 0:
         fps = 30.0
-    return Run(positions, times, faces, scene, fps)
+    return Run(positions, times, faces, scene, fps, piece_ranges=ranges)

@@ -61,7 +61,9 @@ CLOTH_KEYS = (
     "size", "resolution", "center", "plane", "mesh", "scale", "translation",
     "mass", "density", "pins", "material", "springs", "velocity",
 )
-COLLISION_KEYS = ("thickness", "restitution", "max_iterations", "newton_iterations")
+COLLISION_KEYS = ("thickness", "restitution", "max_iterations", "newton_iterations", "self_collision", "self_friction")
+#: Coulomb coefficient between layers of cloth when ``self_collision`` is on and ``self_friction`` is not given.
+SELF_FRICTION = 0.3
 COLLISION_DEFAULTS: dict[str, Any] = {"thickness": 0.005, "restitution": 0.0, "max_iterations": 8,
                                       "newton_iterations": 1}
 
@@ -167,9 +169,9 @@ def _solver(d: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _pins(value: Any, n_vertices: int | None = None) -> list[dict[str, Any]]:
+def _pins(value: Any, n_vertices: int | None = None, where: str = "cloth") -> list[dict[str, Any]]:
     if not is_list(value):
-        raise fail("cloth.pins", "must be a list of vertex indices, corner names or tables", value)
+        raise fail(f"{where}.pins", "must be a list of vertex indices, corner names or tables", value)
     groups: list[dict[str, Any]] = []
     loose: list[int | str] = []
     loose_paths: list[str] = []
@@ -180,7 +182,7 @@ def _pins(value: Any, n_vertices: int | None = None) -> list[dict[str, Any]]:
         return integer(path, v, lo=0)
 
     for k, item in enumerate(value):
-        path = f"cloth.pins[{k}]"
+        path = f"{where}.pins[{k}]"
         if isinstance(item, Mapping):
             check_keys(path, item, ("vertices", "velocity"))
             if "vertices" not in item:
@@ -200,7 +202,7 @@ def _pins(value: Any, n_vertices: int | None = None) -> list[dict[str, Any]]:
     if loose:
         groups.insert(0, {"vertices": loose, "velocity": [0.0, 0.0, 0.0], "paths": loose_paths})
     if n_vertices is not None:
-        _pins_in_range(groups, n_vertices)
+        _pins_in_range(groups, n_vertices, "cloth" if where == "cloth" else "piece")
     return groups
 
 
@@ -211,23 +213,23 @@ def _grid_vertices(cloth: Mapping[str, Any]) -> int | None:
     return int(cloth["resolution"][0] * cloth["resolution"][1])
 
 
-def _pins_in_range(groups: list[dict[str, Any]], n: int) -> None:
+def _pins_in_range(groups: list[dict[str, Any]], n: int, what: str = "cloth") -> None:
     for g in groups:
         for path, v in zip(g["paths"], g["vertices"]):
             if isinstance(v, int) and v >= n:
-                raise fail(path, f"vertex index out of range (the cloth has {n} vertices)", v)
+                raise fail(path, f"vertex index out of range (the {what} has {n} vertices)", v)
 
 
-def _springs(d: Any, material: str | None) -> dict[str, dict[str, float]]:
+def _springs(d: Any, material: str | None, where: str = "cloth") -> dict[str, dict[str, float]]:
     out: dict[str, dict[str, float]] = {}
     if material is not None:
         for kind, p in MATERIALS[material].springs().items():
             out[kind] = {"stiffness": p.stiffness, "damping": p.damping}
     if d is None:
         return out
-    check_keys("cloth.springs", d, SPRING_KINDS)
+    check_keys(f"{where}.springs", d, SPRING_KINDS)
     for kind, spec in d.items():
-        path = f"cloth.springs.{kind}"
+        path = f"{where}.springs.{kind}"
         check_keys(path, spec, ("stiffness", "damping"))
         base = out.get(kind, {})
         given = {key: number(f"{path}.{key}", spec[key], lo=0.0) for key in ("stiffness", "damping") if key in spec}
@@ -240,68 +242,93 @@ def _springs(d: Any, material: str | None) -> dict[str, dict[str, float]]:
     return out
 
 
-def _cloth_mesh(d: Mapping[str, Any], base_dir: Path | None) -> dict[str, Any]:
+def _cloth_mesh(d: Mapping[str, Any], base_dir: Path | None, where: str = "cloth") -> dict[str, Any]:
     """A mesh cloth's shape keys: the file, scale and translation."""
     for key in ("size", "resolution", "plane", "center"):
         if key in d:
-            raise SceneError(f"cloth.{key}: not used with cloth.mesh (a mesh cloth takes scale and translation)")
+            raise SceneError(f"{where}.{key}: not used with cloth.mesh (a mesh cloth takes scale and translation)")
     mesh = d["mesh"]
     if not isinstance(mesh, str) or not mesh:
-        raise fail("cloth.mesh", "must be a path to a mesh file", mesh)
+        raise fail(f"{where}.mesh", "must be a path to a mesh file", mesh)
     path = Path(mesh)
     if not path.is_absolute() and base_dir is not None:
         path = base_dir / path
     return {"kind": "mesh", "mesh": str(path),
-            "scale": number("cloth.scale", d.get("scale", 1.0), lo=0.0, lo_open=True),
-            "translation": vector("cloth.translation", d.get("translation", [0.0, 0.0, 0.0]), 3)}
+            "scale": number(f"{where}.scale", d.get("scale", 1.0), lo=0.0, lo_open=True),
+            "translation": vector(f"{where}.translation", d.get("translation", [0.0, 0.0, 0.0]), 3)}
 
 
-def _cloth_grid(d: Mapping[str, Any]) -> dict[str, Any]:
+def _cloth_grid(d: Mapping[str, Any], where: str = "cloth") -> dict[str, Any]:
     """A grid cloth's shape keys: size, resolution, center and plane."""
     for key in ("scale", "translation"):
         if key in d:
-            raise SceneError(f"cloth.{key}: only used with cloth.mesh (a grid cloth takes size and center)")
+            raise SceneError(f"{where}.{key}: only used with cloth.mesh (a grid cloth takes size and center)")
     out: dict[str, Any] = {"kind": "grid"}
-    out["size"] = vector("cloth.size", d.get("size", [1.0, 1.0]), 2, positive=True)
+    out["size"] = vector(f"{where}.size", d.get("size", [1.0, 1.0]), 2, positive=True)
     res = d.get("resolution", [32, 32])
     if not is_list(res) or len(res) != 2:
-        raise fail("cloth.resolution", "must be a list of 2 integers >= 2", res)
-    out["resolution"] = [integer(f"cloth.resolution[{k}]", r, lo=2) for k, r in enumerate(res)]
+        raise fail(f"{where}.resolution", "must be a list of 2 integers >= 2", res)
+    out["resolution"] = [integer(f"{where}.resolution[{k}]", r, lo=2) for k, r in enumerate(res)]
     if out["resolution"][0] * out["resolution"][1] > MAX_VERTICES:
-        raise fail("cloth.resolution", f"must give at most {MAX_VERTICES} vertices (4096 x 4096), "
+        raise fail(f"{where}.resolution", f"must give at most {MAX_VERTICES} vertices (4096 x 4096), "
                    f"nx * ny = {out['resolution'][0] * out['resolution'][1]}", res)
-    out["center"] = vector("cloth.center", d.get("center", [0.0, 0.0, 0.0]), 3)
-    out["plane"] = choice("cloth.plane", d.get("plane", "xz"), PLANES)
+    out["center"] = vector(f"{where}.center", d.get("center", [0.0, 0.0, 0.0]), 3)
+    out["plane"] = choice(f"{where}.plane", d.get("plane", "xz"), PLANES)
     return out
 
 
-def _cloth_mass(d: Mapping[str, Any], material: str | None) -> dict[str, float]:
+def _cloth_mass(d: Mapping[str, Any], material: str | None, where: str = "cloth") -> dict[str, float]:
     """``cloth.mass`` or ``cloth.density`` (or the material's density)."""
     if "mass" in d and "density" in d:
-        raise SceneError("cloth.density: give either cloth.mass or cloth.density, not both")
+        raise SceneError(f"{where}.density: give either cloth.mass or cloth.density, not both")
     if "mass" in d:
-        return {"mass": number("cloth.mass", d["mass"], lo=0.0, lo_open=True)}
+        return {"mass": number(f"{where}.mass", d["mass"], lo=0.0, lo_open=True)}
     if "density" in d:
-        return {"density": number("cloth.density", d["density"], lo=0.0, lo_open=True)}
+        return {"density": number(f"{where}.density", d["density"], lo=0.0, lo_open=True)}
     if material is not None:
         return {"density": MATERIALS[material].density}
-    raise SceneError("cloth.mass: missing (give cloth.mass in kg, cloth.density in kg/m^2, or a material)")
+    raise SceneError(f"{where}.mass: missing (give cloth.mass in kg, cloth.density in kg/m^2, or a material)")
 
 
-def _cloth(d: Any, base_dir: Path | None) -> dict[str, Any]:
-    check_keys("cloth", d, CLOTH_KEYS)
-    out = _cloth_mesh(d, base_dir) if "mesh" in d else _cloth_grid(d)
+def _cloth(d: Any, base_dir: Path | None, where: str = "cloth") -> dict[str, Any]:
+    check_keys(where, d, CLOTH_KEYS)
+    out = _cloth_mesh(d, base_dir, where) if "mesh" in d else _cloth_grid(d, where)
     material = None
     if "material" in d:
-        material = choice("cloth.material", d["material"], MATERIALS.keys())
+        material = choice(f"{where}.material", d["material"], MATERIALS.keys())
     out["material"] = material
-    out.update(_cloth_mass(d, material))
-    out["velocity"] = vector("cloth.velocity", d.get("velocity", [0.0, 0.0, 0.0]), 3)
-    out["pins"] = _pins(d.get("pins", []), _grid_vertices(out))
+    out.update(_cloth_mass(d, material, where))
+    out["velocity"] = vector(f"{where}.velocity", d.get("velocity", [0.0, 0.0, 0.0]), 3)
+    out["pins"] = _pins(d.get("pins", []), _grid_vertices(out), where)
     if "springs" in d and d["springs"] is None:
-        raise fail("cloth.springs", "must be a table", None)
-    out["springs"] = _springs(d.get("springs"), material)
+        raise fail(f"{where}.springs", "must be a table", None)
+    out["springs"] = _springs(d.get("springs"), material, where)
     return out
+
+
+def _cloths(d: Any, base_dir: Path | None) -> dict[str, Any] | list[dict[str, Any]]:
+    """``[cloth]`` (one table) or ``[[cloth]]`` (several pieces, each checked as ``cloth[k]``)."""
+    if not is_list(d):
+        return _cloth(d, base_dir)
+    if not len(d):
+        raise fail("cloth", "must be a table or a non-empty array of tables ([[cloth]])", d)
+    pieces = [_cloth(c, base_dir, f"cloth[{k}]") for k, c in enumerate(d)]
+    total = sum(r[0] * r[1] for r in (c.get("resolution") for c in pieces) if r is not None)
+    if total > MAX_VERTICES:
+        raise fail("cloth", f"the pieces' grids must give at most {MAX_VERTICES} vertices in all (4096 x 4096), "
+                   f"got {total}", [c.get("resolution") for c in pieces])
+    return pieces
+
+
+def cloth_pieces(data: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The normalised scene's cloth pieces in order: ``[cloth]`` is one piece, ``[[cloth]]`` several."""
+    c = data["cloth"]
+    return list(c) if isinstance(c, list) else [c]
+
+
+def piece_path(data: Mapping[str, Any], k: int) -> str:
+    """How errors name piece ``k``: ``cloth`` for a single ``[cloth]`` table, ``cloth[k]`` for ``[[cloth]]``."""
+    return f"cloth[{k}]" if isinstance(data["cloth"], list) else "cloth"
 
 
 def _effects(d: Any) -> dict[str, Any]:
@@ -329,12 +356,27 @@ def _collision(d: Any) -> dict[str, Any]:
         out["max_iterations"] = integer("collision.max_iterations", d["max_iterations"], lo=1, hi=1000)
     if "newton_iterations" in d:
         out["newton_iterations"] = integer("collision.newton_iterations", d["newton_iterations"], lo=1, hi=100)
+    # self-collision's keys appear in the normalised table only when it is on (a scene without it is unchanged)
+    if boolean("collision.self_collision", d.get("self_collision", False)):
+        out["self_collision"] = True
+        out["self_friction"] = number("collision.self_friction", d.get("self_friction", SELF_FRICTION), lo=0.0)
+    elif "self_friction" in d:
+        raise SceneError("collision.self_friction: given, but collision.self_collision is not true")
     return out
+
+
+def self_collision(data: Mapping[str, Any]) -> bool:
+    """Whether the normalised scene asks for self-collision (``[collision] self_collision = true``)."""
+    return bool((data.get("collision") or {}).get("self_collision", False))
 
 
 def is_normalised(data: Any) -> bool:
     """Whether ``data`` is a normalised scene (:attr:`Scene.data`, e.g. a ``report.json``'s ``"scene"``)."""
-    return isinstance(data, Mapping) and isinstance(data.get("cloth"), Mapping) and "kind" in data["cloth"]
+    if not isinstance(data, Mapping):
+        return False
+    c = data.get("cloth")
+    first = c[0] if isinstance(c, list) and c else c
+    return isinstance(first, Mapping) and "kind" in first
 
 
 def _pins_source(groups: list[Any]) -> list[Any]:
@@ -355,7 +397,7 @@ def _pins_source(groups: list[Any]) -> list[Any]:
     return [items[k] for k in sorted(items)]
 
 
-_PIN_PATH = re.compile(r"^cloth\.pins\[(\d+)\](\.vertices\[\d+\])?$")
+_PIN_PATH = re.compile(r"^cloth(?:\[\d+\])?\.pins\[(\d+)\](\.vertices\[\d+\])?$")
 
 
 def source_of(data: Mapping[str, Any]) -> dict[str, Any]:
@@ -368,14 +410,16 @@ def source_of(data: Mapping[str, Any]) -> dict[str, Any]:
     """
     raw = copy.deepcopy(dict(data))
     cloth = raw.get("cloth")
-    if isinstance(cloth, dict):
-        kind = cloth.pop("kind", None)
+    for c in cloth if isinstance(cloth, list) else [cloth]:
+        if not isinstance(c, dict):
+            continue
+        kind = c.pop("kind", None)
         if kind not in ("grid", "mesh"):
             raise fail("cloth.kind", "must be grid or mesh (a normalised scene's kind of cloth)", kind)
-        if cloth.get("material", "") is None:
-            del cloth["material"]
-        if isinstance(cloth.get("pins"), list):
-            cloth["pins"] = _pins_source(cloth["pins"])
+        if c.get("material", "") is None:
+            del c["material"]
+        if isinstance(c.get("pins"), list):
+            c["pins"] = _pins_source(c["pins"])
     if raw.get("collision", "") is None:
         del raw["collision"]
     for o in raw.get("obstacles") or []:
@@ -422,13 +466,15 @@ class Scene:
         out: dict[str, Any] = {
             "simulation": _simulation(data.get("simulation", {})),
             "solver": _solver(data.get("solver", {})),
-            "cloth": _cloth(data["cloth"], self.base_dir),
+            "cloth": _cloths(data["cloth"], self.base_dir),
             "effects": _effects(data.get("effects", {})),
             "obstacles": validate_obstacles(data.get("obstacles", []), self.base_dir),
         }
-        if "collision" in data and not out["obstacles"]:
-            raise SceneError("collision: given, but the scene has no [[obstacles]] to collide with")
-        out["collision"] = _collision(data.get("collision", {})) if out["obstacles"] else None
+        collision = _collision(data.get("collision", {})) if "collision" in data or out["obstacles"] else None
+        if collision is not None and not out["obstacles"] and not collision.get("self_collision"):
+            raise SceneError("collision: given, but the scene has no [[obstacles]] to collide with (and "
+                             "collision.self_collision is not true)")
+        out["collision"] = collision
         return out
 
     def replace(self, **sections: Mapping[str, Any]) -> "Scene":
@@ -445,14 +491,16 @@ class Scene:
     def effects(self) -> list[str]:
         """The names of the effects this scene declares, in evaluation order."""
         names = [k for k in EFFECTS.names() if k in self.data["effects"]]
-        names += [k for k in SPRING_KINDS if k in self.data["cloth"]["springs"]]
+        names += [k for k in SPRING_KINDS if any(k in c["springs"] for c in cloth_pieces(self.data))]
         if self.data["obstacles"]:
             names.append("collision")
+        if self_collision(self.data):
+            names.append("self_collision")
         return names
 
     def __repr__(self) -> str:
-        c = self.data["cloth"]
-        what = f"grid {c['resolution'][0]}x{c['resolution'][1]}" if c["kind"] == "grid" else f"mesh {c['mesh']}"
+        what = ", ".join(f"grid {c['resolution'][0]}x{c['resolution'][1]}" if c["kind"] == "grid"
+                         else f"mesh {c['mesh']}" for c in cloth_pieces(self.data))
         return f"Scene({what}, effects={self.effects})"
 
 

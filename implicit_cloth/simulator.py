@@ -22,7 +22,7 @@ from .files import save_npz
 from .integrators import ImplicitIntegrator, make_integrator
 from .interrupt import deferred_interrupt
 from .model import Model, State
-from .scene import Scene, load_scene
+from .scene import Scene, load_scene, self_collision
 from .scene import check_run_length as _run_length
 
 
@@ -128,7 +128,7 @@ class Simulator:
             self.model = Model(scene)
             self.integrator = make_integrator(self.integrator_name, self.model, scene.data["solver"])
         x = self.model.rest_positions.copy()
-        v = np.broadcast_to(np.asarray(scene.data["cloth"]["velocity"], dtype=float), x.shape).copy()
+        v = self.model.initial_velocity.copy()
         self.model.apply_pins(x, v, 0.0)
         self.state = State(x, v, 0.0)
         self._pins = Constraints.of_pins(self.model)
@@ -137,6 +137,12 @@ class Simulator:
             from .collision import Collider
 
             self.collider = Collider(scene.data["obstacles"], scene.data["collision"], self.model)
+        #: self-collision (``[collision] self_collision = true``), else None: its code is imported only then
+        self.self_collider: Any = None
+        if self_collision(scene.data):
+            from .selfcontact import SelfCollider
+
+            self.self_collider = SelfCollider(self.model, scene.data["collision"])
         self.last_step: Any = None
         self.blas_threads = blas_threads
         #: adaptive step control (``simulation.adaptive.enabled``), else None
@@ -147,7 +153,8 @@ class Simulator:
         self.measures = self.adaptive.measures if self.adaptive is not None else diagnostics.StepMeasures(self.model)
         self._energy_growth = float(sim["adaptive"]["max_energy_growth"])
         #: whether every step is checked (adaptive stepping, implicit methods, obstacles); else kept frames only
-        self._checks_steps = self.adaptive is not None or self.integrator.implicit or self.collider is not None
+        self._checks_steps = (self.adaptive is not None or self.integrator.implicit or self.collider is not None
+                               or self.self_collider is not None)
         #: the strain no step may leave: strain limiting's ``max_strain`` if declared, else adaptive's
         self.strain_bound = float(sim["strain_limit"]["max_strain"] if "strain_limit" in sim
                                   else sim["adaptive"]["max_strain"])
@@ -209,6 +216,35 @@ class Simulator:
 
     # ------------------------------------------------------------------ stepping
     def _substep(self, state: State, h: float, newton: int | None = None) -> tuple[State, Any]:
+        """One step of ``h`` from ``state`` (:meth:`_obstacle_substep`), then self-collision if declared (it
+        corrects the proposed state after the obstacles, without moving the vertices they hold).
+
+        With an implicit method, the vertices self-collision moved are then prescribed their corrected motion
+        and the step is solved again (with the obstacles), so that their neighbours follow within the step
+        instead of being left behind by a large step (springs stretched at each correction: energy from
+        nowhere); self-collision corrects what that solve proposes.
+        """
+        new, info = self._obstacle_substep(state, h, newton)
+        sc = self.self_collider
+        if sc is None:
+            return new, info
+        resolve = None
+        if isinstance(self.integrator, ImplicitIntegrator):
+            first = info
+
+            def resolve(idx: np.ndarray, vel: np.ndarray) -> State:
+                nonlocal info
+                again, info = self._obstacle_substep(state, h, newton, self._pins.with_pins(idx, vel))
+                info.absorb(first)
+                if info.collision is not None and first.collision is not None:
+                    info.collision.t_collision += first.collision.t_collision
+                return again
+
+        new = sc.step(state, new, h, self.collider, resolve)
+        return new, info
+
+    def _obstacle_substep(self, state: State, h: float, newton: int | None = None,
+                          pins: Constraints | None = None) -> tuple[State, Any]:
         """One integrator step of ``h`` seconds from ``state``, with contacts and strain limiting if declared.
 
         The unit that adaptive stepping discards and redoes (with Newton iterations, or a smaller ``h``).
@@ -218,10 +254,11 @@ class Simulator:
         corrected state. ``newton``: Newton iterations asked for (None: the solver's setting).
         """
         col = self.collider
+        pins = self._pins if pins is None else pins
         if col is not None and self.integrator.implicit:
-            return col.step(self.integrator, state, h, self._pins, self.strain_limiter, newton)
+            return col.step(self.integrator, state, h, pins, self.strain_limiter, newton)
         if isinstance(self.integrator, ImplicitIntegrator):
-            new, info = self.integrator.step(state, h, self._pins, newton=newton)
+            new, info = self.integrator.step(state, h, pins, newton=newton)
         else:
             new, info = self.integrator.step(state, h)
         if self.strain_limiter is not None:
@@ -347,7 +384,7 @@ class Simulator:
 STRAIN_TOLERANCE = 1e-3
 
 #: Report criteria of the run health, in the order they are listed.
-HEALTH_CRITERIA: tuple[str, ...] = ("energy", "strain", "failsafe", "solver")
+HEALTH_CRITERIA: tuple[str, ...] = ("energy", "strain", "failsafe", "self_collision", "solver")
 
 
 class Health:
@@ -379,6 +416,8 @@ class Health:
                                  f"t={e['first_time']:.4g} s, at worst {e['worst']:.3g}"),
             "failsafe": lambda e: (f"collision fail-safe fired in {e['count']} steps (vertices frozen to an "
                                    f"obstacle), first at t={e['first_time']:.4g} s"),
+            "self_collision": lambda e: (f"self-collision's impact zones left {e['worst']:g} impacts unresolved in "
+                                         f"{e['count']} steps, first at t={e['first_time']:.4g} s"),
             "solver": lambda e: (f"linear solve unconverged in {e['count']} steps, first at "
                                  f"t={e['first_time']:.4g} s, largest residual {e['worst']:.3g}"),
         }
@@ -410,6 +449,8 @@ class _Recorder:
             sim.adaptive.window_min_step = math.inf
         if sim.strain_limiter is not None:
             sim.strain_limiter.reset_stats()
+        if sim.self_collider is not None:
+            sim.self_collider.totals.reset(st)
         self.pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity))
         self.pin_work, self.pin_p = 0.0, diagnostics.pin_power(model, st.x, st.v, st.t)
         self.frames: dict[str, list[float]] = {k: [] for k in self.FRAME_KEYS}
@@ -507,6 +548,7 @@ class _Recorder:
             for c, ev in sim.adaptive.stats.forced_events.items():
                 if c in ("energy", "strain"):
                     health.add(c, ev["first_time"], ev["worst"], int(ev["count"]))
+        self_report = sim.self_collider.report(sim.state, health) if sim.self_collider is not None else None
         warnings_ = health.messages(sim.strain_bound, sim._energy_growth)
         status, reason = self.status, self.reason
         if status == "ok" and warnings_:
@@ -521,6 +563,9 @@ class _Recorder:
             "frame_rate": self.frame_rate,
             "effects": list(model.effect_names),
             "n_vertices": model.n,
+            **({"pieces": [{"vertices": list(vr), "faces": list(fr)}
+                           for vr, fr in zip(model.pieces, model.piece_faces)]}
+               if isinstance(sim.scene.data["cloth"], list) else {}),
             "n_springs": {k: sl.stop - sl.start for k, sl in model.springs.kinds.items()} if model.springs else {},
             "n_pinned": int(len(model.pinned)),
             "total_mass": model.total_mass,
@@ -555,6 +600,9 @@ class _Recorder:
         if self.col is not None:
             report["timing"]["t_collision"] = self.col.time
             report["collision"] = self.col.report(sim.collider)
+        if self_report is not None:
+            report["self_collision"] = self_report
+            report["timing"]["t_self_collision"] = self_report["time"]
         integ = sim.integrator
         if isinstance(integ, ImplicitIntegrator):
             n = max(tot["steps"], 1)

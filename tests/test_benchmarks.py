@@ -43,6 +43,19 @@ def test_bench_unknown_name_exits_2(capsys):
     assert "unknown benchmark 'nonsense'" in capsys.readouterr().err
 
 
+def test_self_collision_quick_via_cli(tmp_path):
+    from implicit_cloth.cli import main
+
+    assert main(["bench", "self_collision", "--quick", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "self_collision.json").read_text())
+    assert res["benchmark"] == "self_collision" and res["quick"] is True
+    assert [r["resolution"] for r in res["rows"]] == [10, 14]
+    for r in res["rows"]:
+        assert r["ms_step"] > 0 and r["max_crossings"] == 0 and r["unresolved_steps"] == 0
+        assert r["ms_self"] <= r["ms_step"]
+    assert "| 14² |" in (tmp_path / "self_collision.md").read_text()
+
+
 def test_contact_energy_quick_via_cli(tmp_path):
     """``implicit-cloth bench contact --quick``: every row judged from its states (energy rise, strain, end state),
     the goals recorded; the outputs are well formed. Goals are read off the table, not asserted here (the

@@ -164,7 +164,10 @@ class Collider:
         switched = np.zeros(self.ctx.n, dtype=bool)
         released = np.zeros(self.ctx.n, dtype=bool)
         balance = 0.0
+        extra = len(pins.pinned) > len(self.model.pinned)     # vertices prescribed for this step (self-collision)
         for rnd in range(self.ctx.max_rounds):
+            if extra and len(active):                           # a prescribed vertex is no contact
+                active = active.take(~np.isin(active.idx, pins.pinned))
             cons = self._constraints(pins, active, state.t, h)
             ts = time.perf_counter()
             new, si = integrator.step(state, h, cons, guess, newton, start)

@@ -224,8 +224,9 @@ def build(model: Any, params: dict[str, dict[str, float]]) -> Springs:
             continue
         p = model.geometry.springs.get(kind, np.zeros((0, 2), dtype=np.int64))
         pairs.append(p)
-        k.append(np.full(len(p), params[kind]["stiffness"]))
-        kd.append(np.full(len(p), params[kind]["damping"]))
+        # one constant per kind, or one per spring (several pieces of different materials)
+        k.append(np.broadcast_to(np.asarray(params[kind]["stiffness"], dtype=float), (len(p),)))
+        kd.append(np.broadcast_to(np.asarray(params[kind]["damping"], dtype=float), (len(p),)))
         kinds[kind] = slice(start, start + len(p))
         start += len(p)
     allp = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
