@@ -22,7 +22,8 @@ edge-first on the floor plane, and the same sphere and box as triangle meshes
 * ``end``: ``resting on it`` (at the end some vertex within 2 thicknesses of the
   obstacle, the cloth's centroid less than 0.6 m below its top, and an rms vertex
   speed below 1 cm/s), ``still moving`` (on it, but faster), ``slid off`` (not on
-  it: fallen past it);
+  it: fallen past it); ``at rest from``: the time of the last kept frame with an
+  rms speed of 1 cm/s or more (resting rows);
 * ``substeps/frame`` (adaptive stepping: accepted substeps per kept frame) and
   ``ms/frame`` (wall time; the machine is shared, so read it as a ratio).
 
@@ -183,12 +184,14 @@ def run_row(spec: dict) -> dict:
     sim = ic.Simulator(ic.Scene.from_dict(spec["scene"], base_dir=folder))
     judge = Judge(sim)
     e0, _ = judge(sim.positions, sim.velocities)
-    seen = {"rise": -math.inf, "strain": 0.0, "frames": 0}
+    seen = {"rise": -math.inf, "strain": 0.0, "frames": 0, "moving_at": 0.0}
 
     def on_frame(state) -> None:
         e, s = judge(state.x, state.v)
         seen["rise"], seen["strain"] = max(seen["rise"], e - e0), max(seen["strain"], s)
         seen["frames"] += 1
+        if float(np.sqrt(np.mean(np.einsum("ij,ij->i", state.v, state.v)))) >= REST_SPEED:
+            seen["moving_at"] = float(state.t)      # the last kept frame faster than REST_SPEED (rms)
 
     t0 = time.perf_counter()
     try:
@@ -213,6 +216,7 @@ def run_row(spec: dict) -> dict:
         on = gap < ON_DISTANCE and float(x[:, 2].mean()) > top - ON_DROP
         row["end_gap"], row["end_centroid_z"] = gap, float(x[:, 2].mean())
         row["end"] = "slid off" if not on else "resting on it" if vrms < REST_SPEED else "still moving"
+        row["rest_from"] = seen["moving_at"] if vrms < REST_SPEED else None    # s: at rest from this frame on
     else:
         row["end"] = "-"
         row["max_stretch"] = 1.0 + seen["strain"]
@@ -245,14 +249,15 @@ def markdown(res: dict) -> str:
              f"{MASS} kg, k = 1000 / 333 / 10 N/m (or the material preset), dropped {DROP} m, friction {FRICTION}, "
              f"thickness {THICKNESS * 1e3:g} mm, {res['duration']:g} s. rise: largest E(t) - E(0) over m g (1 m) "
              f"(goal <= {100 * RISE_GOAL:g} %).", ""]
-    lines += ["| group | shape | grid | dt | material | rise | max strain | end | substeps/frame | ms/frame | report |",
-              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += ["| group | shape | grid | dt | material | rise | max strain | end | at rest from | substeps/frame | "
+              "ms/frame | report |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         if r["group"] == "moving":
             continue
         ok = "" if r["rise_frac"] <= RISE_GOAL else " **x**"
         lines.append(f"| {r['group']} | {r['shape']} | {r['n']}² | 1/{round(1 / r['dt'])} | {r['material'] or '-'} | "
                      f"{100 * r['rise_frac']:.2f} %{ok} | {r['max_strain']:.3f} | {r['end']} | "
+                     f"{'-' if r.get('rest_from') is None else format(r['rest_from'], '.2f') + ' s'} | "
                      f"{r['substeps_per_frame']:.2f} | {r['ms_per_frame']:.0f} | {r['report_status']} |")
     mov = [r for r in res["rows"] if r["group"] == "moving"]
     if mov:

@@ -133,7 +133,7 @@ class Simulator:
         self.state = State(x, v, 0.0)
         self._pins = Constraints.of_pins(self.model)
         self.collider: Any = None
-        if scene.data["obstacles"]:   # fcl and the collision code are imported only for obstacles
+        if scene.data["obstacles"]:   # the collision code is imported only for obstacles
             from .collision import Collider
 
             self.collider = Collider(scene.data["obstacles"], scene.data["collision"], self.model)

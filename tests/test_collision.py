@@ -70,7 +70,7 @@ def test_obstacle_defaults_and_effects_list():
     sc = ic.Scene.from_dict(cloth_scene({"shape": "sphere", "radius": 0.2}))
     ob = sc.data["obstacles"][0]
     assert ob["center"] == [0.0, 0.0, 0.0] and ob["velocity"] == [0.0, 0.0, 0.0] and ob["friction"] == 0.0
-    assert sc.data["collision"] == {"thickness": TH, "restitution": 0.0, "max_iterations": 8}
+    assert sc.data["collision"] == {"thickness": TH, "restitution": 0.0, "max_iterations": 8, "newton_iterations": 1}
     assert "collision" in sc.effects
     plain = ic.Scene.from_dict({"cloth": {"mass": 0.1}})
     assert plain.data["obstacles"] == [] and plain.data["collision"] is None
@@ -90,6 +90,8 @@ def test_obstacle_defaults_and_effects_list():
     ([{"shape": "sphere", "radius": 1}], {"thickness": 0}, "collision.thickness: must be a finite number > 0, got 0"),
     ([{"shape": "sphere", "radius": 1}], {"restitution": 1.5}, "collision.restitution: must be a finite number >= 0 "
                                                                "and <= 1, got 1.5"),
+    ([{"shape": "sphere", "radius": 1}], {"newton_iterations": 0}, "collision.newton_iterations: must be an integer "
+                                                                   ">= 1 and <= 100, got 0"),
     ([], {"thickness": 0.01}, "collision: given, but the scene has no [[obstacles]]"),
     ({"shape": "sphere"}, None, "obstacles: must be an array of tables"),
 ])

@@ -11,7 +11,7 @@ Imported only by a scene with ``[[obstacles]]``. An implicit step
    (:mod:`implicit_cloth.constraints`), the tangential motion free or held by
    friction.
 2. **Detect** what the proposed step violates (:mod:`~implicit_cloth.collision.contacts`:
-   vertex sweeps, mesh faces through python-fcl's broad phase, obstacle corners
+   vertex sweeps, mesh faces through the broad phase (:mod:`~implicit_cloth.collision.broadphase`), obstacle corners
    and edges against cloth triangles and edges, edge interiors against curved
    surfaces), **constrain** the vertices found and **solve again** from the same
    state (warm-started), so that an impact reaches the neighbours in the same

@@ -18,7 +18,7 @@ would keep it out, with its violation ``off - n . p1`` (m):
   nearest surface point). On a convex surface, sliding along that plane moves
   the vertex away from the surface, never into it.
 * **mesh** contacts: the exact vertex-face time of impact against the faces
-  python-fcl's broad phase proposes (the face's normal turned to the side the
+  the broad phase (:mod:`~implicit_cloth.collision.broadphase`) proposes (the face's normal turned to the side the
   vertex came from), or the nearest face point within ``th`` of the end position.
 * **feature** contacts: an obstacle corner against a cloth triangle, an obstacle
   edge against a cloth edge (exact coplanarity time of impact, or proximity), and
@@ -355,21 +355,21 @@ def _mesh(frame: Frame, k: int, shape, p0, p1) -> list[Planes]:
     vn = np.flatnonzero(near(shape, p0, p1, r) & frame.free)
     en = np.flatnonzero(near(shape, p0[E], p1[E], r))
     tn = np.flatnonzero(near(shape, p0[T], p1[T], r))
-    cand = broadphase.candidates(shape.bvh, p0, p1, vn, E[en], T[tn], r)
+    cand = broadphase.candidates(shape.index, p0, p1, vn, E[en], T[tn], r)
     out = []
-    pv = [cand[key] for key in (broadphase.VERTEX_PATH, broadphase.VERTEX_BALL) if key in cand]
+    pv = [cand[key] for key in (broadphase.VERTEX_PATH,) if key in cand]
     if pv:
-        pairs = np.unique(np.column_stack([np.concatenate([a for a, _ in pv]),
-                                           np.concatenate([b for _, b in pv])]), axis=0)
+        pairs = np.column_stack(broadphase.unique_pairs(np.concatenate([a for a, _ in pv]),
+                                                   np.concatenate([b for _, b in pv])))
         out.append(_mesh_vertex_face(frame, k, shape, pairs[:, 0], pairs[:, 1], p0, p1))
     if broadphase.EDGE_QUAD in cand:
         ei, fi = cand[broadphase.EDGE_QUAD]
-        pairs = np.unique(np.column_stack([np.repeat(en[ei], 3), shape.face_edges[fi].ravel()]), axis=0)
+        pairs = np.column_stack(broadphase.unique_pairs(np.repeat(en[ei], 3), shape.face_edges[fi].ravel()))
         out.append(_edge_pairs(frame, k, shape, shape.feature_edges, p0, p1, pairs=(pairs[:, 0], pairs[:, 1]),
                                target_fraction=EDGE_FRACTION))
     if broadphase.TRIANGLE in cand:
         ti, fi = cand[broadphase.TRIANGLE]
-        pairs = np.unique(np.column_stack([np.repeat(tn[ti], 3), shape.faces[fi].ravel()]), axis=0)
+        pairs = np.column_stack(broadphase.unique_pairs(np.repeat(tn[ti], 3), shape.faces[fi].ravel()))
         out.append(_corners(frame, k, shape, shape.vertices, p0, p1, pairs=(pairs[:, 0], pairs[:, 1])))
     return out
 

@@ -47,6 +47,10 @@ def cloth_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0)
 
 
+#: Default ``collision.newton_iterations`` (also for a report's scene written before the key existed).
+COLLISION_NEWTON = 1
+
+
 @dataclass
 class Context:
     """The obstacles, the collision settings and the cloth's topology and masses.
@@ -68,6 +72,9 @@ class Context:
         Inverse masses, 0 for pinned vertices (no correction moves them).
     friction : bool
         Whether the geometric response applies friction (off when it follows an implicit solve, which has).
+    newton : int
+        Newton iterations of an implicit step with contacts, its contact rounds' linear solve included
+        (``collision.newton_iterations``; 1: Baraff & Witkin's single linearisation).
     """
 
     obstacles: list[Obstacle]
@@ -79,6 +86,7 @@ class Context:
     masses: np.ndarray
     inv_mass: np.ndarray
     friction: bool = True
+    newton: int = 1
 
     @classmethod
     def build(cls, obstacles: list[dict[str, Any]], settings: dict[str, Any], model: Any) -> "Context":
@@ -87,7 +95,8 @@ class Context:
         faces = np.asarray(model.faces, dtype=np.int64)
         return cls([Obstacle.from_spec(s) for s in obstacles], float(settings["thickness"]),
                    float(settings["restitution"]), int(settings["max_iterations"]), faces, cloth_edges(faces),
-                   np.asarray(model.masses, dtype=float), inv_mass)
+                   np.asarray(model.masses, dtype=float), inv_mass,
+                   newton=int(settings.get("newton_iterations", COLLISION_NEWTON)))
 
     @property
     def n(self) -> int:

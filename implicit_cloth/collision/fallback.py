@@ -20,7 +20,8 @@ d. edges (:func:`~implicit_cloth.collision.features.edge_proximity`): no point o
    ``thickness / 2`` to a curved convex shape.
 
 Mesh obstacles (no signed distance) replace a, b and d by the exact tests of cloth vertices against the
-faces python-fcl's broad phase proposes (:func:`~implicit_cloth.collision.mesh.mesh_round`).
+faces the broad phase (:mod:`~implicit_cloth.collision.broadphase`) proposes
+(:func:`~implicit_cloth.collision.mesh.mesh_round`).
 
 Rounds repeat until one finds nothing to correct, at most ``collision.max_iterations``. Vertices still in
 violation then are frozen to the obstacle (moved rigidly with it from their collision-free start, with its
@@ -164,7 +165,7 @@ def violations(ctx: Context, x0, x, t0, t1) -> np.ndarray:
         p0, p1 = ob.motion.to_local(x0, t0), ob.motion.to_local(x, t1)
         vid = np.flatnonzero(near(ob.shape, p0, p1, th) & ctx.free)
         if isinstance(ob.shape, MeshShape):   # vertex paths still crossing a face
-            cand = broadphase.candidates(ob.shape.bvh, p0, p1, vid, ctx.edges[:0], ctx.faces[:0], th)
+            cand = broadphase.candidates(ob.shape.index, p0, p1, vid, ctx.edges[:0], ctx.faces[:0], th)
             if broadphase.VERTEX_PATH in cand:
                 vi, fi = cand[broadphase.VERTEX_PATH]
                 F = ob.shape.faces[fi]

@@ -1,6 +1,6 @@
 """The geometric response's stage for mesh obstacles (functions over a collision context).
 
-A mesh has no signed distance: python-fcl's broad phase
+A mesh has no signed distance: the broad phase (:mod:`~implicit_cloth.collision.broadphase`)
 (:mod:`~implicit_cloth.collision.broadphase`) proposes candidate pairs, and the
 exact tests are cloth vertices against faces plus every mesh vertex and edge as
 a sharp feature (:func:`~implicit_cloth.collision.features.feature_pairs`).
@@ -18,7 +18,7 @@ from .shapes import MeshShape
 
 
 def mesh_round(ctx: Context, ob: Obstacle, x0, x, v, t0, t1, h):
-    """One round against a mesh obstacle: fcl broad phase, then the exact tests (vertex-face, edge-edge,
+    """One round against a mesh obstacle: box broad phase, then the exact tests (vertex-face, edge-edge,
     corner-triangle)."""
     th = ctx.thickness
     mo, shape = ob.motion, ob.shape
@@ -29,12 +29,12 @@ def mesh_round(ctx: Context, ob: Obstacle, x0, x, v, t0, t1, h):
     vn = np.flatnonzero(near(ob.shape, q0, q1, th) & ctx.free)
     en = np.flatnonzero(near(ob.shape, q0[E], q1[E], th))
     tn = np.flatnonzero(near(ob.shape, q0[T], q1[T], th))
-    cand = broadphase.candidates(shape.bvh, q0, q1, vn, E[en], T[tn], th)
+    cand = broadphase.candidates(shape.index, q0, q1, vn, E[en], T[tn], th)
     busy, contacts, ncand, s_min = False, 0, 0, np.inf
-    pv = [cand[k] for k in (broadphase.VERTEX_PATH, broadphase.VERTEX_BALL) if k in cand]
+    pv = [cand[k] for k in (broadphase.VERTEX_PATH,) if k in cand]
     if pv:
-        pairs = np.unique(np.column_stack([np.concatenate([a for a, _ in pv]),
-                                           np.concatenate([b for _, b in pv])]), axis=0)
+        pairs = np.column_stack(broadphase.unique_pairs(np.concatenate([a for a, _ in pv]),
+                                                   np.concatenate([b for _, b in pv])))
         ncand += len(pairs)
         b, k, sm = mesh_vertex_face(ctx, ob, pairs[:, 0], pairs[:, 1], q0, x, v, t0, t1, h)
         busy |= b
@@ -42,7 +42,7 @@ def mesh_round(ctx: Context, ob: Obstacle, x0, x, v, t0, t1, h):
         s_min = min(s_min, sm)
     if broadphase.EDGE_QUAD in cand:
         ei, fi = cand[broadphase.EDGE_QUAD]
-        pairs = np.unique(np.column_stack([np.repeat(en[ei], 3), shape.face_edges[fi].ravel()]), axis=0)
+        pairs = np.column_stack(broadphase.unique_pairs(np.repeat(en[ei], 3), shape.face_edges[fi].ravel()))
         ncand += len(pairs)
         q1 = mo.to_local(x, t1)
         b, k = feature_pairs(ctx, ob, "ee", E, q0[E], q1[E], pairs[:, 0], pairs[:, 1], shape.feature_edges,
@@ -51,7 +51,7 @@ def mesh_round(ctx: Context, ob: Obstacle, x0, x, v, t0, t1, h):
         contacts += k
     if broadphase.TRIANGLE in cand:
         ti, fi = cand[broadphase.TRIANGLE]
-        pairs = np.unique(np.column_stack([np.repeat(tn[ti], 3), shape.faces[fi].ravel()]), axis=0)
+        pairs = np.column_stack(broadphase.unique_pairs(np.repeat(tn[ti], 3), shape.faces[fi].ravel()))
         ncand += len(pairs)
         q1 = mo.to_local(x, t1)
         b, k = feature_pairs(ctx, ob, "vf", T, q0[T], q1[T], pairs[:, 0], pairs[:, 1], shape.vertices,

@@ -513,7 +513,7 @@ class Cone(Shape):
 class MeshShape(Shape):
     """A triangle mesh obstacle (any file trimesh reads), two-sided: the cloth stays on the side it is on.
 
-    No signed distance: contacts are found by the fcl broad phase
+    No signed distance: contacts are found by the box broad phase
     (:mod:`~implicit_cloth.collision.broadphase`) and the exact point-triangle
     and edge-edge tests of :mod:`~implicit_cloth.collision.ccd`. Every mesh
     vertex and edge is treated as a sharp feature.
@@ -537,7 +537,7 @@ class MeshShape(Shape):
         self.face_normals = n / np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
         self.feature_points = self.vertices
         self.feature_edges = self.vertices[self.edges]
-        self.bvh = broadphase.bvh(self.vertices, self.faces)
+        self.index = broadphase.TriangleIndex(self.vertices, self.faces)
         # closed (every edge in exactly two faces): the mesh has an inside
         _, counts = np.unique(np.sort(np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]],
                                                       self.faces[:, [2, 0]]]), axis=1), axis=0, return_counts=True)

@@ -49,6 +49,9 @@ class StepInfo:
     solves: int = 0
     #: Newton iterations of the step (implicit methods; 1 = one linearisation, BW98)
     newton_iterations: int = 0
+    #: rms over the free vertices (neither pinned nor in contact) of the step's nonlinear residual as an
+    #: acceleration, ``|M (v1 - v_hat) - c_v F(x1, v1)| / (c_v m)``, m/s², when a linear step had contacts
+    balance: float = 0.0
 
     def absorb(self, other: "StepInfo") -> None:
         """Add another solve of the same step: iterations and times summed, residual the largest."""
@@ -208,10 +211,23 @@ class ImplicitIntegrator(Integrator):
         dv = self._solve(A, b, z, filt, info, guess)
         if iters > 1 and np.all(np.isfinite(dv)):
             return self._newton(state, h, c, scheme, v + dv, filt, iters - 1, info)
+        v1 = v + dv
+        x1 = scheme.x_pred + scheme.beta * v1
         if c.n_contacts:   # A dv - b = c_v F_c: the constraint force F_c over the step h is the impulse
             info.constraint_impulse = (A @ dv.reshape(-1) - b.reshape(-1)).reshape(-1, 3) * (h / scheme.c_v)
-        v1 = v + dv
-        return self._finish(scheme.x_pred + scheme.beta * v1, v1, state.t + h), info
+            info.balance = self._balance(scheme, c, x1, v1, state.t + h)
+        return self._finish(x1, v1, state.t + h), info
+
+    def _balance(self, scheme: Scheme, c: Constraints, x1: np.ndarray, v1: np.ndarray, t1: float) -> float:
+        """:attr:`StepInfo.balance` of the end state ``x1``, ``v1`` (one force evaluation)."""
+        free = np.ones(self.model.n, dtype=bool)
+        free[c.pinned] = False
+        free[c.contact] = False
+        if not np.any(free):
+            return 0.0
+        m = self.model.masses[free, None]
+        r = m * (v1[free] - scheme.v_hat[free]) - scheme.c_v * self._forces(x1, v1, t1, c)[free]
+        return float(np.sqrt(np.mean(np.einsum("ij,ij->i", r, r) / m[:, 0] ** 2))) / scheme.c_v
 
     # ------------------------------------------------------------------ nonlinear solve
     def _forces(self, x: np.ndarray, v: np.ndarray, t: float, c: Constraints) -> np.ndarray:
