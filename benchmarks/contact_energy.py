@@ -307,7 +307,7 @@ def plot(res: dict, path: Path) -> None:
     a.scatter([], [], marker="o", color="w", edgecolor="k", label="dt 1/60")
     a.scatter([], [], marker="s", color="w", edgecolor="k", label="dt 1/30")
     a.legend(fontsize=7, ncol=2)
-    a.set_title("static drapes (values below 1e-4 % drawn at 1e-4 %)")
+    a.set_title("static drapes (rises below 0.01 % drawn at 0.01 %)")
     mov = [r for r in res["rows"] if r["group"] == "moving"]
     for n in sorted({r["n"] for r in mov}):
         rr = sorted((r for r in mov if r["n"] == n), key=lambda r: r["speed"])
