@@ -96,20 +96,15 @@ def candidates(index: TriangleIndex, p0: np.ndarray, p1: np.ndarray, verts: np.n
         ``{VERTEX_PATH: (vertex ids, triangles), EDGE_QUAD: (rows of edges, triangles),
         TRIANGLE: (rows of tris, triangles)}``, kinds without candidates left out.
     """
+    groups = {VERTEX_PATH: (verts, lambda: np.stack([p0[verts], p1[verts]], axis=1)),    # both ends
+              EDGE_QUAD: (edges, lambda: np.concatenate([p0[edges], p1[edges]], axis=1)),   # ends at both
+              TRIANGLE: (tris, lambda: p1[tris])}                                         # corners at the end
     out = {}
-    if len(verts):
-        a, b = p0[verts], p1[verts]
-        i, t = index.overlaps(np.minimum(a, b) - r, np.maximum(a, b) + r)
+    for kind, (prims, points) in groups.items():
+        if not len(prims):
+            continue
+        q = points()                                       # (K, m, 3): each primitive's points over the step
+        i, t = index.overlaps(q.min(axis=1) - r, q.max(axis=1) + r)
         if len(i):
-            out[VERTEX_PATH] = (verts[i], t)
-    if len(edges):
-        pts = np.stack([p0[edges[:, 0]], p0[edges[:, 1]], p1[edges[:, 0]], p1[edges[:, 1]]], axis=1)
-        i, t = index.overlaps(pts.min(axis=1) - r, pts.max(axis=1) + r)
-        if len(i):
-            out[EDGE_QUAD] = (i, t)
-    if len(tris):
-        t1 = p1[tris]
-        i, t = index.overlaps(t1.min(axis=1) - r, t1.max(axis=1) + r)
-        if len(i):
-            out[TRIANGLE] = (i, t)
+            out[kind] = (verts[i] if kind == VERTEX_PATH else i, t)
     return out

@@ -183,11 +183,8 @@ class Collider:
             if len(active):
                 active, changed = self._after_solve(active, cons, si.constraint_impulse, new.v, h,
                                                     carried if rnd == 0 else active.idx, switched, released)
-            found = contacts.detect(self._frame(state, new), self.ctx.obstacles)
-            if len(found):
-                info.contacts += int(np.count_nonzero(~np.isin(found.idx, active.idx)))
-                active = contacts.merge(active, found)
-                changed |= float(found.viol.max()) > RESOLVE_FRACTION * self.ctx.thickness
+            active, viol = self._detect(state, new, active, info)
+            changed |= viol > RESOLVE_FRACTION * self.ctx.thickness
             if not changed:
                 break      # small new violations are held from the next step on; the response keeps them out now
             guess = new.v - state.v
@@ -196,11 +193,18 @@ class Collider:
             new, cons, t = self._refine(integrator, state, h, pins, active, new, total, switched)
             t_solve += t
             if np.all(np.isfinite(new.x)):   # contacts the refined motion makes: held from the next step on
-                found = contacts.detect(self._frame(state, new), self.ctx.obstacles)
-                if len(found):
-                    info.contacts += int(np.count_nonzero(~np.isin(found.idx, active.idx)))
-                    active = contacts.merge(active, found)
+                active, _ = self._detect(state, new, active, info)
         return new, total, info, cons, active, t_solve
+
+    def _detect(self, state: Any, new: Any, active: contacts.Planes,
+                info: CollisionInfo) -> tuple[contacts.Planes, float]:
+        """``active`` with the contacts the step ``state -> new`` makes merged in (new ones counted in ``info``),
+        and the largest violation among those found (m; 0 if none)."""
+        found = contacts.detect(self._frame(state, new), self.ctx.obstacles)
+        if not len(found):
+            return active, 0.0
+        info.contacts += int(np.count_nonzero(~np.isin(found.idx, active.idx)))
+        return contacts.merge(active, found), float(found.viol.max())
 
     def _refine(self, integrator: Any, state: Any, h: float, pins: Constraints, active: contacts.Planes,
                 new: Any, total: StepInfo, switched: np.ndarray) -> tuple[Any, Constraints, float]:
