@@ -137,6 +137,43 @@ class Backend:
         return np.sqrt(np.einsum("ij,ij->i", d, d))
 
 
+    # ----------------------------------------------------------------- strain limiting
+    def limit_strain(self, x: np.ndarray, i: np.ndarray, j: np.ndarray, limit: np.ndarray, share_i: np.ndarray,
+                     share_j: np.ndarray, classes: list[np.ndarray], tolerance: float, max_passes: int,
+                     planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[int, int]:
+        """Provot's passes over ``x`` in place (:mod:`implicit_cloth.strain_limit`): at most ``max_passes``
+        Gauss-Seidel passes over the colour ``classes``, each correcting the springs over ``limit`` at its start
+        and then putting the vertices of ``planes`` = ``(idx, n, offset)`` below their plane back on it.
+        Returns ``(passes made, springs over the limit before the first)``."""
+        first = passes = 0
+        tiny = np.finfo(float).tiny
+        for it in range(max_passes):
+            d = x[j] - x[i]
+            l = np.sqrt(np.einsum("ij,ij->i", d, d))
+            over = l - limit > tolerance * limit
+            if it == 0:
+                first = int(over.sum())
+            if not over.any():
+                break
+            passes += 1
+            for cls in classes:          # Gauss-Seidel over the colour classes (a few tens of them)
+                cls = cls[over[cls]]
+                if not len(cls):
+                    continue
+                iv, jv = i[cls], j[cls]
+                d = x[jv] - x[iv]
+                l = np.sqrt(np.einsum("ij,ij->i", d, d))
+                e = l - limit[cls]
+                corr = (np.where(e > 0, e, 0.0) / np.maximum(l, tiny))[:, None] * d   # e n
+                x[iv] += share_i[cls][:, None] * corr   # no vertex twice in a class: plain indexing
+                x[jv] -= share_j[cls][:, None] * corr
+            if planes is not None:
+                ci, cn, co = planes
+                below = co - np.einsum("ij,ij->i", cn, x[ci])
+                x[ci] += np.maximum(below, 0.0)[:, None] * cn
+        return passes, first
+
+
 class NumbaBackend(Backend):
     """The compiled kernels (the ``fast`` extra): the same passes as :class:`Backend`, same values."""
 
@@ -167,6 +204,19 @@ class NumbaBackend(Backend):
         out = np.empty(len(i))
         spring_lengths(np.ascontiguousarray(x, dtype=float), i, j, out)
         return out
+
+
+    def limit_strain(self, x: np.ndarray, i: np.ndarray, j: np.ndarray, limit: np.ndarray, share_i: np.ndarray,
+                     share_j: np.ndarray, classes: list[np.ndarray], tolerance: float, max_passes: int,
+                     planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[int, int]:
+        from .kernels.strain import empty_planes, limit_passes
+
+        ci, cn, co = empty_planes() if planes is None else planes
+        order = np.concatenate(classes) if classes else np.zeros(0, dtype=np.int64)
+        passes, first = limit_passes(x, i, j, limit, share_i, share_j, order, np.zeros(len(i), dtype=np.bool_),
+                                     float(tolerance), int(max_passes), np.asarray(ci, dtype=np.int64),
+                                     np.ascontiguousarray(cn, dtype=float), np.ascontiguousarray(co, dtype=float))
+        return int(passes), int(first)
 
 
 _BACKENDS: dict[str, Backend] = {}

@@ -101,36 +101,11 @@ class StrainLimiter:
         x = new.x
         if not len(self.i) or not (np.all(np.isfinite(x)) and np.all(np.isfinite(new.v))):
             return 0
-        x_in = None
-        passes = 0
-        for it in range(self.iterations):
-            d = x[self.j] - x[self.i]
-            l = np.sqrt(np.einsum("ij,ij->i", d, d))
-            over = l - self.limit > self.tolerance * self.limit
-            if it == 0:
-                self.stats["springs_limited"] += int(over.sum())
-            if not over.any():
-                break
-            if x_in is None:
-                x_in = x.copy()
-            passes += 1
-            for cls in self.classes:          # Gauss-Seidel over the colour classes (a few tens of them)
-                cls = cls[over[cls]]
-                if not len(cls):
-                    continue
-                iv, jv = self.i[cls], self.j[cls]
-                d = x[jv] - x[iv]
-                l = np.sqrt(np.einsum("ij,ij->i", d, d))
-                e = l - self.limit[cls]
-                ok = e > 0
-                corr = (np.where(ok, e, 0.0) / np.maximum(l, np.finfo(float).tiny))[:, None] * d   # e n
-                x[iv] += self.share_i[cls][:, None] * corr   # no vertex twice in a class: plain indexing
-                x[jv] -= self.share_j[cls][:, None] * corr
-            if planes is not None:
-                ci, cn, co = planes
-                below = co - np.einsum("ij,ij->i", cn, x[ci])
-                x[ci] += np.maximum(below, 0.0)[:, None] * cn
-        if x_in is not None:
+        x_in = x.copy()
+        passes, first = self.model.backend.limit_strain(x, self.i, self.j, self.limit, self.share_i, self.share_j,
+                                                        self.classes, self.tolerance, self.iterations, planes)
+        self.stats["springs_limited"] += first
+        if passes:
             new.v += (x - x_in) / h
             self.stats["steps_limited"] += 1
         self.stats["max_iterations"] = max(self.stats["max_iterations"], passes)
