@@ -65,7 +65,7 @@ COLLISION_KEYS = ("thickness", "restitution", "max_iterations", "newton_iteratio
 #: Coulomb coefficient between layers of cloth when ``self_collision`` is on and ``self_friction`` is not given.
 SELF_FRICTION = 0.3
 COLLISION_DEFAULTS: dict[str, Any] = {"thickness": 0.005, "restitution": 0.0, "max_iterations": 8,
-                                      "newton_iterations": 1}
+                                      "newton_iterations": 2}
 
 #: Largest grid (nx * ny vertices, 4096 x 4096): beyond it the arrays alone need tens of GB.
 MAX_VERTICES = 4096 * 4096

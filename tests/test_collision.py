@@ -70,7 +70,7 @@ def test_obstacle_defaults_and_effects_list():
     sc = ic.Scene.from_dict(cloth_scene({"shape": "sphere", "radius": 0.2}))
     ob = sc.data["obstacles"][0]
     assert ob["center"] == [0.0, 0.0, 0.0] and ob["velocity"] == [0.0, 0.0, 0.0] and ob["friction"] == 0.0
-    assert sc.data["collision"] == {"thickness": TH, "restitution": 0.0, "max_iterations": 8, "newton_iterations": 1}
+    assert sc.data["collision"] == {"thickness": TH, "restitution": 0.0, "max_iterations": 8, "newton_iterations": 2}
     assert "collision" in sc.effects
     plain = ic.Scene.from_dict({"cloth": {"mass": 0.1}})
     assert plain.data["obstacles"] == [] and plain.data["collision"] is None
@@ -394,14 +394,17 @@ def test_fast_sphere_pushes_a_hanging_cloth_and_never_crosses_it(dt, adaptive):
 
 
 def test_resting_drape_on_a_sphere_settles_without_jitter():
-    sc = cloth_scene({"shape": "sphere", "radius": 0.2, "center": [0.0, 0.0, -0.2]}, dt=1 / 60, duration=2.0,
+    """A 16² drape on a sphere at dt 1/60 lands and comes to rest: no energy rise late, what rests on the sphere
+    still to 1e-4 m/s. (2.5 s: with the contact steps' Newton continuation, the default since it stopped the
+    creep of drapes at dt 1/30, the landing ends a little later; at 2.0 s one vertex still slid at 1.4e-4 m/s.)"""
+    sc = cloth_scene({"shape": "sphere", "radius": 0.2, "center": [0.0, 0.0, -0.2]}, dt=1 / 60, duration=2.5,
                      res=16, center=(0, 0, 0.05), friction=0.3)
     sim = ic.Simulator(sc)
     traj = sim.run(frame_rate=10)
     v_depth, e_depth = depths(sim, traj)
     assert v_depth <= TOL and e_depth <= TOL
     f = traj.report["frames"]
-    late = np.asarray(f["time"]) >= 1.5 - 1e-9
+    late = np.asarray(f["time"]) >= 2.0 - 1e-9
     total = np.asarray(f["total"])[late]
     # energy no longer rises: over the last half second it stays within 0.1 % of what the drop released
     released = f["total"][0] - total[-1]
