@@ -34,6 +34,15 @@ from numba import njit
 
 
 @njit(cache=True, inline="always")
+def spring_vector(x, i, j):
+    """``(d0, d1, d2, l)``: the spring vector ``d = x_j - x_i`` and its length ``|d|``."""
+    d0 = x[j, 0] - x[i, 0]
+    d1 = x[j, 1] - x[i, 1]
+    d2 = x[j, 2] - x[i, 2]
+    return d0, d1, d2, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+@njit(cache=True, inline="always")
 def _add_sym(B, b, sign, c00, c01, c02, c11, c12, c22):
     """``B[9 b : 9 b + 9] += sign * C`` for the symmetric 3x3 ``C`` given by its upper triangle."""
     p = 9 * b
@@ -79,10 +88,7 @@ def springs_linearize(x, v, w, with_w, damped, si, sj, k, kd, L0, tiny, c_x, c_v
     for s in range(si.shape[0]):
         i = si[s]
         j = sj[s]
-        d0 = x[j, 0] - x[i, 0]
-        d1 = x[j, 1] - x[i, 1]
-        d2 = x[j, 2] - x[i, 2]
-        l = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        d0, d1, d2, l = spring_vector(x, i, j)
         ks = k[s]
         L = L0[s]
         if l > tiny:
@@ -148,9 +154,4 @@ def springs_linearize(x, v, w, with_w, damped, si, sj, k, kd, L0, tiny, c_x, c_v
 def spring_lengths(x, si, sj, out):
     """``out[s] = |x[sj[s]] - x[si[s]]|``, m (the numpy path's ``Springs.lengths``, one pass)."""
     for s in range(len(si)):
-        i = si[s]
-        j = sj[s]
-        d0 = x[j, 0] - x[i, 0]
-        d1 = x[j, 1] - x[i, 1]
-        d2 = x[j, 2] - x[i, 2]
-        out[s] = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        out[s] = spring_vector(x, si[s], sj[s])[3]

@@ -11,10 +11,10 @@ numba.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
+
+from .springs import spring_vector
 
 
 @njit(cache=True)
@@ -30,12 +30,7 @@ def limit_passes(x, si, sj, limit, share_i, share_j, order, over, tolerance, max
     for it in range(max_passes):
         count = 0
         for s in range(n_s):
-            i = si[s]
-            j = sj[s]
-            d0 = x[j, 0] - x[i, 0]
-            d1 = x[j, 1] - x[i, 1]
-            d2 = x[j, 2] - x[i, 2]
-            l = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            l = spring_vector(x, si[s], sj[s])[3]
             o = l - limit[s] > tolerance * limit[s]
             over[s] = o
             if o:
@@ -51,10 +46,7 @@ def limit_passes(x, si, sj, limit, share_i, share_j, order, over, tolerance, max
                 continue
             i = si[s]
             j = sj[s]
-            d0 = x[j, 0] - x[i, 0]
-            d1 = x[j, 1] - x[i, 1]
-            d2 = x[j, 2] - x[i, 2]
-            l = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            d0, d1, d2, l = spring_vector(x, i, j)
             e = l - limit[s]
             if e <= 0.0:
                 continue
