@@ -136,18 +136,19 @@ def impacts(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray, tol
         disp = np.sqrt(np.einsum("ikj,ikj->ik", B - A, B - A))
         first = np.where(vf, disp[:, 0], disp[:, :2].max(axis=1))
         second = np.where(vf, disp[:, 1:].max(axis=1), disp[:, 2:].max(axis=1))
-        reach = d0 <= first + second + tol
+        cand = np.flatnonzero(d0 <= first + second + tol)
     else:
-        reach = np.ones(k, dtype=bool)
+        cand = np.arange(k)
     # the two primitives' boxes over the step must overlap (first: vertex or edge, second: triangle or edge)
-    lo, hi = np.minimum(A, B), np.maximum(A, B)
-    first = np.where(vf[:, None], [True, False, False, False], [True, True, False, False])
+    lo, hi = np.minimum(A[cand], B[cand]), np.maximum(A[cand], B[cand])
+    first = np.where(vf[cand, None], [True, False, False, False], [True, True, False, False])
     big = np.inf
     lo1 = np.where(first[..., None], lo, big).min(axis=1)
     hi1 = np.where(first[..., None], hi, -big).max(axis=1)
     lo2 = np.where(~first[..., None], lo, big).min(axis=1)
     hi2 = np.where(~first[..., None], hi, -big).max(axis=1)
-    near = reach & np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)
+    near = np.zeros(k, dtype=bool)
+    near[cand[np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)]] = True
     t = np.flatnonzero(near & vf)
     if len(t):
         st, side = point_triangle_toi(A[t, 0], B[t, 0], A[t, 1], B[t, 1], A[t, 2], B[t, 2], A[t, 3], B[t, 3], tol)
