@@ -26,6 +26,8 @@ Usage::
     python benchmarks/self_collision.py --quick          # CI smoke: 10² and 14², 0.3 s
     python benchmarks/self_collision.py --sizes 32 64 --duration 2.0 --broad-phase
     python benchmarks/self_collision.py --sizes 32 --save out/     # out/crumple_32 for implicit-cloth render
+    python benchmarks/self_collision.py --sizes 128 --duration 1.5 --out part128/    # one size per run, then
+    python benchmarks/self_collision.py --merge benchmarks/results/self_collision.json part128/self_collision.json
 """
 
 from __future__ import annotations
@@ -216,6 +218,24 @@ def markdown(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def merge(paths: list[Path], out: Path) -> int:
+    """Combine partial runs (one size per run, as a shared machine allows) into one result: rows by size (a size
+    given twice: the later file's row), the exponent fitted again over all of them. The runs must share dt and
+    duration."""
+    import json
+
+    parts = [json.loads(Path(p).read_text()) for p in paths]
+    for key in ("dt", "duration", "quick"):
+        if len({part[key] for part in parts}) > 1:
+            raise SystemExit(f"--merge: the runs differ in {key}: {[part[key] for part in parts]}")
+    rows = sorted({r["resolution"]: r for part in parts for r in part["rows"]}.values(), key=lambda r: r["resolution"])
+    res = {**parts[0], "rows": rows, "self_exponent": exponent(rows, "ms_self"),
+           "merged_from": [str(p) for p in paths]}
+    write_outputs(out, "self_collision", res, markdown(res))
+    print(markdown(res))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="CI smoke: 10² and 14², 0.3 s")
@@ -226,7 +246,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     ap.add_argument("--save", type=Path, default=None,
                     help="also write each run's trajectory.npz and report.json to SAVE/crumple_N (to render it)")
+    ap.add_argument("--merge", nargs="+", type=Path, metavar="JSON",
+                    help="run nothing: combine the rows of earlier (partial) runs' self_collision.json into one table")
     args = ap.parse_args(argv)
+    if args.merge:
+        return merge(args.merge, args.out)
     sizes, duration = ([10, 14], 0.3) if args.quick else (args.sizes, args.duration)
     rows = []
     for n in sizes:

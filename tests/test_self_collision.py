@@ -9,6 +9,8 @@ test_contact_energy.py); obstacles' inside tests are closed-form distances.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -70,6 +72,27 @@ class Energy:
                 + 0.5 * float(np.dot(self.k, ext * ext)))
 
 
+class _Crossed(Exception):
+    pass
+
+
+def crosses_without_it(scene, base_dir=None) -> bool:
+    """The scene with self-collision off passes through itself at some kept frame (the run stops at the first)."""
+    off = copy.deepcopy(scene)
+    off["collision"]["self_collision"] = False
+    sim = ic.Simulator(ic.Scene(off, base_dir=base_dir))
+
+    def check(s):
+        if crossings(s.x, sim.model.faces) > 0:
+            raise _Crossed
+
+    try:
+        sim.run(on_frame=check)
+    except _Crossed:
+        return True
+    return False
+
+
 def judged(scene, base_dir=None):
     """Run the scene; every kept frame's crossings and energy (this file's), and the run."""
     sim = ic.Simulator(ic.Scene(scene, base_dir=base_dir))
@@ -105,12 +128,14 @@ def _rod_depth(x):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("n, dt, material, duration", [(20, 0.01, "silk", 1.5), (32, 1 / 60, "cotton", 1.3)])
+@pytest.mark.parametrize("n, dt, material, duration", [(20, 0.01, "silk", 1.2), (32, 1 / 60, "cotton", 0.8)])
 def test_a_crumpled_sheet_piles_onto_itself_without_crossing(n, dt, material, duration):
-    if n == 20:   # without it the pile passes through itself (from about 1 s on): the scene is a test
-        off = crumple(n, dt, material, duration)
-        off["collision"]["self_collision"] = False
-        assert max(judged(off)[3]) > 0
+    """The runs end when the pile has formed. Without self-collision the 20² silk passes through itself from 0.8 s
+    on (16 to 229 crossings a frame up to 1.2 s; with it, 145 impacts and 4500 proximity impulses by then), the
+    32² cotton from 0.57 s on (112 to 802 crossings a frame up to 0.8 s; with it, all its impacts are before
+    0.65 s, then the pile lies on itself)."""
+    if n == 20:   # the scene is a test
+        assert crosses_without_it(crumple(n, dt, material, duration))
     sim, traj, frames, cross = judged(crumple(n, dt, material, duration))
     assert cross == [0] * len(frames)
     xs = np.array([x for _, _, x in frames])
@@ -137,7 +162,8 @@ def _two_sheets_mesh(path, n=10):
 
 
 def _on_sphere(cloth):
-    return {"simulation": {"dt": 1 / 60, "duration": 0.8, "frame_rate": 30},
+    # the sheets meet at 0.17 s, the impacts are over by 0.55 s and the upper sheet lies on the lower from 0.4 s
+    return {"simulation": {"dt": 1 / 60, "duration": 0.6, "frame_rate": 30},
             "cloth": cloth, "effects": {"gravity": [0.0, 0.0, -G]},
             "obstacles": [{"shape": "sphere", "radius": 0.3, "friction": 0.3}],
             "collision": {"thickness": TH, "self_collision": True}}
@@ -182,9 +208,8 @@ def test_two_stacked_sheets_in_one_mesh_file_drop_on_a_sphere(tmp_path):
     scene = _on_sphere({"mesh": "two.obj", "material": "cotton"})
     sim, traj, frames, cross = judged(scene, base_dir=tmp_path)
     _check_stack(sim, traj, frames, cross, n_lower)
-    # without self-collision the same drop passes through itself
-    scene["collision"]["self_collision"] = False
-    assert max(judged(scene, base_dir=tmp_path)[3]) > 0
+    # without self-collision the same drop passes through itself (from 0.17 s on)
+    assert crosses_without_it(scene, base_dir=tmp_path)
 
 
 @pytest.mark.slow
@@ -206,7 +231,9 @@ def _layered(x, rest, spacing):
 
 def _towel(self_collision):
     n = 16
-    return n, {"simulation": {"dt": 1 / 60, "duration": 1.2, "frame_rate": 30},
+    # the fold lands at 0.95 s (without self-collision it passes through the towel from 0.97 s on); by 16/15 s
+    # the two layers lie on each other and the pinned edge is past -0.2 m
+    return n, {"simulation": {"dt": 1 / 60, "duration": 16 / 15, "frame_rate": 30},
                "cloth": {"resolution": [n, n], "size": [0.6, 0.6], "plane": "xy", "center": [0.0, 0.0, 0.01],
                          "material": "cotton",
                          "pins": [{"vertices": list(range(n * (n - 1), n * n)), "velocity": [0.0, -0.5, 0.05]}]},
@@ -234,7 +261,7 @@ def test_a_towel_folded_onto_itself_by_moving_pins():
     w = np.array(traj.report["frames"]["pin_work"])
     assert np.max(e - e[0] - w) <= 0.02 * sim.model.total_mass * G * 1.0
     _balanced(traj)
-    assert max(judged(_towel(False)[1])[3]) > 0
+    assert crosses_without_it(_towel(False)[1])
 
 
 def test_layers_that_start_nearer_than_the_thickness_are_an_error(tmp_path):

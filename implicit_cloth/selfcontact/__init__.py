@@ -93,27 +93,29 @@ class SelfInfo:
     t_broad: float = 0.0
     t_self: float = 0.0
 
+    def _combine(self, other: "SelfInfo", add: tuple[str, ...] = (), most: tuple[str, ...] = (),
+                 last: tuple[str, ...] = ()) -> None:
+        """Fields ``add`` summed with ``other``'s, ``most`` the larger of the two, ``last`` taken from ``other``."""
+        for k in add:
+            setattr(self, k, getattr(self, k) + getattr(other, k))
+        for k in most:
+            setattr(self, k, max(getattr(self, k), getattr(other, k)))
+        for k in last:
+            setattr(self, k, getattr(other, k))
+
     def merge(self, second: "SelfInfo", resolved: int) -> None:
         """The figures of the second pass of the same step (after the solve again with ``resolved`` vertices
         prescribed): impulses summed, the impact zones and what is unresolved the second pass's."""
-        self.t_self += second.t_self
-        self.t_broad += second.t_broad
-        self.candidates = max(self.candidates, second.candidates)
-        self.proximities += second.proximities
-        self.impacts += second.impacts
-        self.rounds = max(self.rounds, second.rounds)
-        self.zone_vertices, self.zones, self.unresolved = second.zone_vertices, second.zones, second.unresolved
+        self._combine(second, add=("t_self", "t_broad", "proximities", "impacts"), most=("candidates", "rounds"),
+                      last=("zone_vertices", "zones", "unresolved"))
         self.resolved = resolved
 
     def absorb(self, other: "SelfInfo", accepted: bool = True) -> None:
         """Add a later substep's figures (counts summed, time summed; a discarded one adds only its time)."""
-        self.t_self += other.t_self
-        self.t_broad += other.t_broad
-        if not accepted:
-            return
-        for k in ("candidates", "proximities", "impacts", "zone_vertices", "zones", "unresolved", "resolved"):
-            setattr(self, k, getattr(self, k) + getattr(other, k))
-        self.rounds = max(self.rounds, other.rounds)
+        self._combine(other, add=("t_self", "t_broad"))
+        if accepted:
+            self._combine(other, add=("candidates", "proximities", "impacts", "zone_vertices", "zones", "unresolved",
+                                      "resolved"), most=("rounds",))
 
 
 class SelfCollider:

@@ -90,10 +90,9 @@ def overlapping(alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi: np.ndarr
         out_j.append(np.repeat(big_b, len(small)))
     i = np.concatenate(out_i) if out_i else empty
     j = np.concatenate(out_j) if out_j else empty
-    a, b = np.hstack([alo, ahi]), np.hstack([blo, bhi])    # one gather per side
-    for axis in range(3):                                   # axis by axis, on the pairs still overlapping
-        ai, bj = a[i], b[j]
-        keep = (ai[:, axis] <= bj[:, axis + 3]) & (bj[:, axis] <= ai[:, axis + 3])
+    for axis in range(3):              # axis by axis on the pairs still overlapping, gathering one column each
+        al, ah, bl, bh = (np.ascontiguousarray(c[:, axis]) for c in (alo, ahi, blo, bhi))
+        keep = (al[i] <= bh[j]) & (bl[j] <= ah[i])
         i, j = i[keep], j[keep]
     return i, j
 

@@ -14,7 +14,7 @@ Friction removes up to ``mu dn`` of the tangential relative velocity, never more
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -123,8 +123,10 @@ def impacts(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray, tol
     pair under the linear motion ``x0 -> x1``: the coplanarity cubic's earliest root at which the primitives
     are within ``tol`` (m) of each other (:mod:`implicit_cloth.collision.ccd`).
 
-    ``d0``: the pairs' distances at ``x0``; a pair farther apart than its vertices' two largest displacements
-    (one per primitive) cannot meet in the step and is not tested.
+    ``d0``: the pairs' distances at ``x0``; a pair farther apart than the largest displacement of a vertex of its
+    first primitive relative to one of its second cannot meet in the step and is not tested (the closest points
+    are convex combinations of the vertices, so the distance changes by no more than that; layers falling
+    together move little relative to each other however fast they fall).
     """
     k = len(idx)
     s = np.full(k, np.inf)
@@ -133,39 +135,38 @@ def impacts(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray, tol
         return s, n
     A, B = x0[idx], x1[idx]
     if d0 is not None:
-        disp = np.sqrt(np.einsum("ikj,ikj->ik", B - A, B - A))
-        first = np.where(vf, disp[:, 0], disp[:, :2].max(axis=1))
-        second = np.where(vf, disp[:, 1:].max(axis=1), disp[:, 2:].max(axis=1))
-        reach = d0 <= first + second + tol
+        D = B - A
+        # vertex pairs (first, second): (0, 1), (0, 2), (0, 3) of a vertex-triangle pair, the last four of an edge pair
+        links = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3))
+        rel = np.stack([_dot(D[:, i] - D[:, j], D[:, i] - D[:, j]) for i, j in links], axis=1)
+        most = np.sqrt(np.where(vf, rel[:, :3].max(axis=1), rel[:, 1:].max(axis=1)))
+        cand = np.flatnonzero(d0 <= most + tol)
     else:
-        reach = np.ones(k, dtype=bool)
+        cand = np.arange(k)
     # the two primitives' boxes over the step must overlap (first: vertex or edge, second: triangle or edge)
-    lo, hi = np.minimum(A, B), np.maximum(A, B)
-    first = np.where(vf[:, None], [True, False, False, False], [True, True, False, False])
+    lo, hi = np.minimum(A[cand], B[cand]), np.maximum(A[cand], B[cand])
+    first = np.where(vf[cand, None], [True, False, False, False], [True, True, False, False])
     big = np.inf
     lo1 = np.where(first[..., None], lo, big).min(axis=1)
     hi1 = np.where(first[..., None], hi, -big).max(axis=1)
     lo2 = np.where(~first[..., None], lo, big).min(axis=1)
     hi2 = np.where(~first[..., None], hi, -big).max(axis=1)
-    near = reach & np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)
-    t = np.flatnonzero(near & vf)
-    if len(t):
-        st, side = point_triangle_toi(A[t, 0], B[t, 0], A[t, 1], B[t, 1], A[t, 2], B[t, 2], A[t, 3], B[t, 3], tol)
-        s[t] = st
+    near = np.zeros(k, dtype=bool)
+    near[cand[np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)]] = True
+    # each kind's time of impact, and its normal then: the triangle's (corners 1, 2, 3) for a vertex-triangle
+    # pair, minus the two edges' cross product for an edge-edge pair; ``side`` orients it (first minus second)
+    kinds: tuple[tuple[np.ndarray, Callable[..., Any], tuple[int, int, int, int], float], ...] = (
+        (vf, point_triangle_toi, (2, 1, 3, 1), 1.0), (~vf, edge_edge_toi, (1, 0, 3, 2), -1.0))
+    for kind, toi, (i0, i1, j0, j1), sign in kinds:
+        sel = np.flatnonzero(near & kind)
+        if not len(sel):
+            continue
+        st, side = toi(*(Y[sel, m] for m in range(4) for Y in (A, B)), tol)
+        s[sel] = st
         hit = np.isfinite(st)
-        h_ = t[hit]
+        h_ = sel[hit]
         X = A[h_] + st[hit, None, None] * (B[h_] - A[h_])
-        nt = np.cross(X[:, 2] - X[:, 1], X[:, 3] - X[:, 1])
-        n[h_] = _unit(nt)[0] * side[hit, None]
-    e = np.flatnonzero(near & ~vf)
-    if len(e):
-        se, side = edge_edge_toi(A[e, 0], B[e, 0], A[e, 1], B[e, 1], A[e, 2], B[e, 2], A[e, 3], B[e, 3], tol)
-        s[e] = se
-        hit = np.isfinite(se)
-        h_ = e[hit]
-        X = A[h_] + se[hit, None, None] * (B[h_] - A[h_])
-        ne = np.cross(X[:, 1] - X[:, 0], X[:, 3] - X[:, 2])
-        n[h_] = -_unit(ne)[0] * side[hit, None]
+        n[h_] = sign * _unit(np.cross(X[:, i0] - X[:, i1], X[:, j0] - X[:, j1]))[0] * side[hit, None]
     # a pair that starts coplanar (side 0) takes the normal of its closest points at the start
     flat = np.isfinite(s) & (np.einsum("ij,ij->i", n, n) < 0.5)
     if np.any(flat):
