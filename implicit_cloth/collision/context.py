@@ -47,7 +47,8 @@ def cloth_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0)
 
 
-#: Default ``collision.newton_iterations`` (also for a report's scene written before the key existed).
+#: ``collision.newton_iterations`` of a report's scene written before the key existed (those runs made one
+#: linearisation); a scene's own default is 2 (:data:`implicit_cloth.scene.COLLISION_DEFAULTS`).
 COLLISION_NEWTON = 1
 
 
