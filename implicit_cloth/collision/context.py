@@ -47,8 +47,8 @@ def cloth_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0)
 
 
-#: ``collision.newton_iterations`` of a report's scene written before the key existed (those runs made one
-#: linearisation); a scene's own default is 2 (:data:`implicit_cloth.scene.COLLISION_DEFAULTS`).
+#: ``collision.newton_iterations`` of a settings table that reaches the collider without the key (built by hand:
+#: one linearisation); a validated scene always has it, by default 2 (``implicit_cloth.scene.COLLISION_DEFAULTS``).
 COLLISION_NEWTON = 1
 
 
