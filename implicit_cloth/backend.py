@@ -136,7 +136,6 @@ class Backend:
         d = x[j] - x[i]
         return np.sqrt(np.einsum("ij,ij->i", d, d))
 
-
     # ----------------------------------------------------------------- strain limiting
     def limit_strain(self, x: np.ndarray, i: np.ndarray, j: np.ndarray, limit: np.ndarray, share_i: np.ndarray,
                      share_j: np.ndarray, classes: list[np.ndarray], tolerance: float, max_passes: int,
@@ -204,7 +203,6 @@ class NumbaBackend(Backend):
         out = np.empty(len(i))
         spring_lengths(np.ascontiguousarray(x, dtype=float), i, j, out)
         return out
-
 
     def limit_strain(self, x: np.ndarray, i: np.ndarray, j: np.ndarray, limit: np.ndarray, share_i: np.ndarray,
                      share_j: np.ndarray, classes: list[np.ndarray], tolerance: float, max_passes: int,
