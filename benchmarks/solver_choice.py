@@ -17,7 +17,9 @@ Cholesky at the coarsest level), each the preconditioner of the library's filter
 ``jacobi`` (the library's: one damped block-Jacobi sweep, omega 0.7, before and after), ``jacobi2`` (two
 sweeps), ``W`` (a W-cycle), ``chebyshev2`` / ``chebyshev3`` (a Chebyshev polynomial of ``D^-1 A`` of degree
 2 / 3 on ``[lmax / 30, lmax]``, ``lmax`` 1.1 times a 15-step power estimate per level), ``filtered_P``
-(coarse spaces in the free directions: prolongation ``S P``, coarse matrices ``P^T S A S P``). The true
+(coarse spaces in the free directions: prolongation ``S P``, coarse matrices ``P^T S A S P``), ``sa_rigid``
+(not this hierarchy: pyamg's smoothed aggregation with the six rigid motions at the step's positions as the
+near-null space, interpolation that follows the cloth's shape; its setup is rebuilt per system). The true
 error is against a sparse direct solve of the filtered system. Cost: fine-level matrix passes per CG
 iteration (CG's product plus the V-cycle's, its coarse levels counted at their share of the fine level's
 blocks), the figure that decides time once the iterations are known (the compiled path's ms of the default
@@ -52,6 +54,7 @@ LEVERS = {
     "jacobi": {}, "jacobi2": {"nu": 2}, "W": {"cycle": "W"},
     "chebyshev2": {"smoother": "chebyshev", "degree": 2}, "chebyshev3": {"smoother": "chebyshev", "degree": 3},
     "filtered_P": {"filtered_p": True},
+    "sa_rigid": {},
 }
 
 
@@ -69,11 +72,12 @@ def capture(kind: str, n: int, step: int) -> dict:
         return orig(A, b, z, filt, info, guess, tolerance)
 
     sim.step(step - 1)
+    x = sim.state.x.copy()
     integ._solve = spy
     sim.step(1)
     r = rec[0] if kind == "stiff" else rec[-1]
     r.update(masses=sim.model.masses.copy(), grid=sim.model.geometry.grid_shape, kind=kind, n=n, step=step,
-             solves_in_step=len(rec))
+             solves_in_step=len(rec), x=x)
     return r
 
 
@@ -162,6 +166,42 @@ class VCycle:
         return 1.0 + per * sum(s * v for s, v in zip(share, visits))
 
 
+def rigid_modes(x: np.ndarray) -> np.ndarray:
+    """The six rigid motions of the cloth at positions ``x`` (N, 3), columns of a (3N, 6) array."""
+    c = x - x.mean(axis=0)
+    B = np.zeros((3 * len(x), 6))
+    for a in range(3):
+        B[a::3, a] = 1.0
+    B[1::3, 3], B[2::3, 3] = -c[:, 2], c[:, 1]     # rotations e_k x c
+    B[0::3, 4], B[2::3, 4] = c[:, 2], -c[:, 0]
+    B[0::3, 5], B[1::3, 5] = -c[:, 1], c[:, 0]
+    return B
+
+
+class SmoothedAggregation:
+    """pyamg's smoothed aggregation of ``S A S + (I - S)`` (3x3 blocks) with the rigid motions at the step's
+    positions as near-null space, its default V-cycle (symmetric block Gauss-Seidel) as the preconditioner.
+    Rebuilt from scratch for every system: its setup (``setup_s``) is a full pyamg setup in Python."""
+
+    def __init__(self, A, filt: Filter, x: np.ndarray) -> None:
+        import pyamg
+
+        S = _bdiag(filt.matrices())
+        K = sp.bsr_matrix(S @ A @ S + (sp.identity(A.shape[0], format="csr") - S), blocksize=(3, 3))
+        t0 = time.perf_counter()
+        self.ml = pyamg.smoothed_aggregation_solver(K, B=rigid_modes(x), max_coarse=100)
+        self.setup_s = time.perf_counter() - t0
+        self.M = self.ml.aspreconditioner(cycle="V")
+
+    def apply(self, r: np.ndarray) -> np.ndarray:
+        return np.asarray(self.M @ r)
+
+    def passes(self) -> float:
+        """CG's product + per level a symmetric Gauss-Seidel sweep (2 passes) before and after and a residual."""
+        nnz = [lv.A.nnz for lv in self.ml.levels[:-1]]
+        return 1.0 + 5.0 * sum(n / nnz[0] for n in nnz)
+
+
 def direct(A, b: np.ndarray, z: np.ndarray, filt: Filter) -> np.ndarray:
     """The exact filtered solution: ``(I - S) dv = (I - S) z``, ``S (A dv - b) = 0``."""
     S = _bdiag(filt.matrices())
@@ -176,13 +216,13 @@ def solve_all(sysd: dict, levers: list[str], tol: float, label: str) -> list[dic
     ref = direct(A, b, z, filt)
     rows = []
     for name in levers:
-        pc = VCycle(A, filt, Ps, **LEVERS[name])
+        pc = SmoothedAggregation(A, filt, sysd["x"]) if name == "sa_rigid" else VCycle(A, filt, Ps, **LEVERS[name])
         t0 = time.perf_counter()
         dv, res = filtered_pcg(A, b, z, filt, pc, tol, 2000, mass=np.repeat(sysd["masses"], 3), compiled=False)
         row = {"system": label, "n": sysd["n"], "lever": name, "iterations": res.iterations,
                "true_error": float(np.linalg.norm(dv - ref) / np.linalg.norm(ref)), "converged": res.converged,
                "passes_per_iteration": pc.passes(), "constrained": int(len(filt.fixed) + len(filt.partial)),
-               "numpy_s": time.perf_counter() - t0}
+               "numpy_s": time.perf_counter() - t0, "setup_s": getattr(pc, "setup_s", None)}
         row["passes"] = row["passes_per_iteration"] * row["iterations"]
         rows.append(row)
         print(f"{label:16s} {sysd['n']:4d}² {name:11s} its {res.iterations:4d}  true err {row['true_error']:.1e}  "
