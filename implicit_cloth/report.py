@@ -148,6 +148,8 @@ class StrainLimitReport(Record):
     springs_limited: int
     max_iterations: int
     max_strain_after: float
+    #: vertices tied to their nearest pin (0: ``tethers = false``, no pins, or a report from before tethers)
+    tethers: int = 0
 
 
 @dataclass

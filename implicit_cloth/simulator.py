@@ -596,7 +596,8 @@ class _Recorder:
             if sim._checks_steps:   # after the whole step (collisions included), not only after limiting
                 stats["max_strain_after"] = health.max_strain
             report["strain_limit"] = {"max_strain": sim.strain_limiter.max_strain,
-                                      "iterations": sim.strain_limiter.iterations, **stats}
+                                      "iterations": sim.strain_limiter.iterations,
+                                      "tethers": sim.strain_limiter.n_tethers, **stats}
         if self.col is not None:
             report["timing"]["t_collision"] = self.col.time
             report["collision"] = self.col.report(sim.collider)

@@ -94,6 +94,53 @@ def test_hanging_chain_held_at_the_limit_matches_the_closed_form(tau):
     assert 0 < rep["max_iterations"] <= 1000 and rep["max_strain_after"] <= tau + 2e-7
 
 
+def _dragged(tethers: bool, n: int = 24, iterations: int = 200):
+    """A n² cloth pinned at its top corners (plane xz), every other vertex moved 1 m along y, as a fast
+    obstacle drags it; the limiter (max_strain 0.1) given ``iterations`` passes."""
+    sim = ic.Simulator({"simulation": {"strain_limit": {"max_strain": 0.1, "iterations": iterations,
+                                                        "tethers": tethers}},
+                        "cloth": {"size": [1.0, 1.0], "resolution": [n, n], "mass": 0.1, "plane": "xz",
+                                  "pins": ["top_left", "top_right"],
+                                  "springs": {"structural": {"stiffness": 1e3}, "shear": {"stiffness": 300.0},
+                                              "bend": {"stiffness": 10.0}}}})
+    x = sim.positions.copy()
+    free = np.setdiff1d(np.arange(len(x)), sim.model.pinned)
+    x[free, 1] += 1.0
+    state = State(x, np.zeros_like(x), 0.0)
+    passes = sim.strain_limiter.apply(state, 0.01)
+    return sim, state, passes
+
+
+def test_tethers_bring_a_dragged_cloth_back_within_the_limit():
+    """Passes of local corrections carry the pins' pull one spring per pass: 200 of them leave a 24² cloth
+    dragged 1 m from its two pins far beyond the bound (measured: strain 2.4, the excess piled in the springs at
+    the pins). With the tethers (the default) the same 200 passes end near it (0.18: what is left is the slow
+    tail of local corrections, 0.108 after 1000 passes)."""
+    sim, state, _ = _dragged(tethers=False)
+    assert sim.model.springs.strain(state.x).max() > 1.0
+    sim, state, passes = _dragged(tethers=True)
+    assert sim.strain_limiter.n_tethers == sim.model.n - 2
+    assert sim.model.springs.strain(state.x).max() <= 0.2
+
+
+def test_tethers_never_forbid_a_state_the_springs_allow():
+    """Each tether's length is (1 + max_strain) times a path of rest lengths from the vertex to its pin: at
+    least the straight rest distance (so the rest state, and any state the springs' bounds allow, is inside
+    every tether) and, on the grid's structural and shear springs, at most 8.3 % longer than it."""
+    sim, _, _ = _dragged(tethers=True, n=12)
+    lim = sim.strain_limiter
+    i, j, limit = (a[:lim.n_tethers] for a in lim._all[:3])
+    x0 = sim.model.rest_positions
+    straight = np.linalg.norm(x0[i] - x0[j], axis=1)
+    path = limit / 1.1
+    assert np.all(np.isin(j, sim.model.pinned))
+    assert np.all(path >= straight * (1 - 1e-12))
+    assert np.all(path <= straight * 1.083 + 1e-12)
+    # each vertex is tied to its nearer pin
+    other = np.where(j == sim.model.pinned[0], sim.model.pinned[1], sim.model.pinned[0])
+    assert np.all(straight <= np.linalg.norm(x0[i] - x0[other], axis=1) * 1.083)
+
+
 def test_colour_classes_are_disjoint_and_cover_every_spring():
     from implicit_cloth.strain_limit import _colour_classes
 
@@ -122,6 +169,7 @@ def test_without_the_table_nothing_is_limited_or_imported():
     ({"max_strain": 0.1, "iterations": 0}, "simulation.strain_limit.iterations: must be an integer >= 1"),
     ({"max_strain": 0.1, "iteration": 3}, "simulation.strain_limit.iteration: unknown key (did you mean"),
     (0.1, "simulation.strain_limit: must be a table, got 0.1"),
+    ({"max_strain": 0.1, "tethers": 1}, "simulation.strain_limit.tethers: must be true or false, got 1"),
 ])
 def test_strain_limit_keys_are_validated(table, expect):
     with pytest.raises(ic.SceneError) as exc:
