@@ -139,12 +139,14 @@ class Backend:
     # ----------------------------------------------------------------- strain limiting
     def limit_strain(self, x: np.ndarray, i: np.ndarray, j: np.ndarray, limit: np.ndarray, share_i: np.ndarray,
                      share_j: np.ndarray, classes: list[np.ndarray], tolerance: float, max_passes: int,
-                     planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[int, int]:
+                     planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[int, int, np.ndarray]:
         """Provot's passes over ``x`` in place (:mod:`implicit_cloth.strain_limit`): at most ``max_passes``
         Gauss-Seidel passes over the colour ``classes``, each correcting the springs over ``limit`` at its start
         and then putting the vertices of ``planes`` = ``(idx, n, offset)`` below their plane back on it.
-        Returns ``(passes made, springs over the limit before the first)``."""
+        Returns ``(passes made, springs over the limit before the first, how far each plane pushed its vertex
+        along its normal over all passes, m)``."""
         first = passes = 0
+        pushed = np.zeros(0 if planes is None else len(planes[0]))
         tiny = np.finfo(float).tiny
         for it in range(max_passes):
             d = x[j] - x[i]
@@ -168,9 +170,10 @@ class Backend:
                 x[jv] -= share_j[cls][:, None] * corr
             if planes is not None:
                 ci, cn, co = planes
-                below = co - np.einsum("ij,ij->i", cn, x[ci])
-                x[ci] += np.maximum(below, 0.0)[:, None] * cn
-        return passes, first
+                below = np.maximum(co - np.einsum("ij,ij->i", cn, x[ci]), 0.0)
+                x[ci] += below[:, None] * cn
+                pushed += below
+        return passes, first, pushed
 
 
 class NumbaBackend(Backend):
@@ -206,15 +209,17 @@ class NumbaBackend(Backend):
 
     def limit_strain(self, x: np.ndarray, i: np.ndarray, j: np.ndarray, limit: np.ndarray, share_i: np.ndarray,
                      share_j: np.ndarray, classes: list[np.ndarray], tolerance: float, max_passes: int,
-                     planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[int, int]:
+                     planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[int, int, np.ndarray]:
         from .kernels.strain import empty_planes, limit_passes
 
         ci, cn, co = empty_planes() if planes is None else planes
         order = np.concatenate(classes) if classes else np.zeros(0, dtype=np.int64)
+        pushed = np.zeros(len(ci))
         passes, first = limit_passes(x, i, j, limit, share_i, share_j, order, np.zeros(len(i), dtype=np.bool_),
                                      float(tolerance), int(max_passes), np.asarray(ci, dtype=np.int64),
-                                     np.ascontiguousarray(cn, dtype=float), np.ascontiguousarray(co, dtype=float))
-        return int(passes), int(first)
+                                     np.ascontiguousarray(cn, dtype=float), np.ascontiguousarray(co, dtype=float),
+                                     pushed)
+        return int(passes), int(first), pushed
 
 
 _BACKENDS: dict[str, Backend] = {}

@@ -102,6 +102,8 @@ class StrainLimiter:
                      np.concatenate([np.ones(nt), self.share_i]), np.concatenate([np.zeros(nt), self.share_j]),
                      ([np.arange(nt)] if nt else []) + [c + nt for c in self.classes])
         self.n_tethers = nt
+        #: after :meth:`apply`: how far each contact plane pushed its vertex along its normal, m
+        self.pushed = np.zeros(0)
         #: a spring counts as over-stretched when l > (1 + tolerance) (1 + max_strain) L0
         self.tolerance = 1e-7
         self.reset_stats()
@@ -116,6 +118,8 @@ class StrainLimiter:
         ``planes`` = ``(idx, n, offset)``: contact planes ``n . x_idx >= offset`` (the collision stage's) that
         every pass keeps: a vertex a correction moved below its plane is put back on it (as position-based
         dynamics interleaves collision constraints), so limiting never pushes the cloth into an obstacle.
+        Afterwards :attr:`pushed` holds how far each plane pushed its vertex out along its normal over all
+        passes, m (the obstacle's impulse on it is ``m pushed / h`` along the normal: its work is the caller's).
         """
         x = new.x
         if not len(self.i) or not (np.all(np.isfinite(x)) and np.all(np.isfinite(new.v))):
@@ -124,10 +128,11 @@ class StrainLimiter:
         d = x[self.j] - x[self.i]
         over = np.sqrt(np.einsum("ij,ij->i", d, d)) - self.limit > self.tolerance * self.limit
         passes = 0
+        self.pushed = np.zeros(0 if planes is None else len(planes[0]))
         if over.any():                  # else the tethers hold too: they are implied by the springs' bounds
             i, j, limit, share_i, share_j, classes = self._all
-            passes, _ = self.model.backend.limit_strain(x, i, j, limit, share_i, share_j, classes, self.tolerance,
-                                                        self.iterations, planes)
+            passes, _, self.pushed = self.model.backend.limit_strain(x, i, j, limit, share_i, share_j, classes,
+                                                                     self.tolerance, self.iterations, planes)
         self.stats["springs_limited"] += int(over.sum())
         if passes:
             new.v += (x - x_in) / h

@@ -270,6 +270,9 @@ class Collider:
             work += friction.inelastic(active, cons, carried, state, new, self.ctx.restitution, self.ctx.masses)
         if limiter is not None:
             limiter.apply(new, h, planes=(cons.contact, cons.normal, cons.offset) if cons.n_contacts else None)
+            if cons.n_contacts and len(limiter.pushed):     # the planes' pushes: impulses m dx / h along n
+                m = self.ctx.masses[cons.contact]
+                work += float(np.sum(m * limiter.pushed / h * np.einsum("ij,ij->i", cons.normal, cons.velocity)))
         v_before = new.v.copy()
         self.ctx.friction = False
         try:

@@ -18,11 +18,12 @@ from .springs import spring_vector
 
 
 @njit(cache=True)
-def limit_passes(x, si, sj, limit, share_i, share_j, order, over, tolerance, max_passes, ci, cn, co):
+def limit_passes(x, si, sj, limit, share_i, share_j, order, over, tolerance, max_passes, ci, cn, co, pushed):
     """Strain-limit ``x`` in place; returns ``(passes, springs over the limit before the first pass)``.
 
     ``order``: the springs class after class; ``over``: a bool work array of one entry per spring;
-    ``ci``, ``cn``, ``co``: contact vertices, normals and offsets (``n . x >= offset``), empty for none.
+    ``ci``, ``cn``, ``co``: contact vertices, normals and offsets (``n . x >= offset``), empty for none;
+    ``pushed`` (one per contact, zeroed by the caller): how far each plane pushed its vertex, summed over passes.
     """
     n_s = len(si)
     first = 0
@@ -67,6 +68,7 @@ def limit_passes(x, si, sj, limit, share_i, share_j, order, over, tolerance, max
                 x[v, 0] += below * cn[k, 0]
                 x[v, 1] += below * cn[k, 1]
                 x[v, 2] += below * cn[k, 2]
+                pushed[k] += below
     return passes, first
 
 
