@@ -216,9 +216,16 @@ def solve_all(sysd: dict, levers: list[str], tol: float, label: str) -> list[dic
     ref = direct(A, b, z, filt)
     rows = []
     for name in levers:
-        pc = SmoothedAggregation(A, filt, sysd["x"]) if name == "sa_rigid" else VCycle(A, filt, Ps, **LEVERS[name])
         t0 = time.perf_counter()
-        dv, res = filtered_pcg(A, b, z, filt, pc, tol, 2000, mass=np.repeat(sysd["masses"], 3), compiled=False)
+        try:
+            pc = SmoothedAggregation(A, filt, sysd["x"]) if name == "sa_rigid" else VCycle(A, filt, Ps, **LEVERS[name])
+            dv, res = filtered_pcg(A, b, z, filt, pc, tol, 2000, mass=np.repeat(sysd["masses"], 3), compiled=False)
+        except (ValueError, np.linalg.LinAlgError, sla.LinAlgError) as e:   # a row, not a crash (NaN in a V-cycle)
+            print(f"{label:16s} {sysd['n']:4d}² {name:11s} failed: {type(e).__name__}: {e}", flush=True)
+            rows.append({"system": label, "n": sysd["n"], "lever": name, "iterations": None, "true_error": None,
+                         "converged": False, "failed": f"{type(e).__name__}: {e}", "passes": None,
+                         "constrained": int(len(filt.fixed) + len(filt.partial)), "numpy_s": time.perf_counter() - t0})
+            continue
         row = {"system": label, "n": sysd["n"], "lever": name, "iterations": res.iterations,
                "true_error": float(np.linalg.norm(dv - ref) / np.linalg.norm(ref)), "converged": res.converged,
                "passes_per_iteration": pc.passes(), "constrained": int(len(filt.fixed) + len(filt.partial)),
@@ -243,7 +250,8 @@ def markdown(res: dict) -> str:
             cells = []
             for n in sizes:
                 r = next((r for r in rows if r["n"] == n and r["lever"] == lever), None)
-                cells.append("-" if r is None else f"{r['iterations']} / {r['true_error']:.1e} / {r['passes']:.0f}")
+                cells.append("-" if r is None else "failed" if r.get("failed") else
+                             f"{r['iterations']} / {r['true_error']:.1e} / {r['passes']:.0f}")
             out.append(f"| {lever} | " + " | ".join(cells) + " |")
         out.append("")
     return "\n".join(out)
