@@ -93,8 +93,8 @@ class StrainLimiter:
         self.share_i = self.wi / np.maximum(self.wi + self.wj, np.finfo(float).tiny)
         self.share_j = 1.0 - self.share_i
         self.classes = _colour_classes(self.i, self.j, model.n)
-        self.tethers = bool(settings.get("tethers", True))
-        ti, tp, td = _tethers(self.i, self.j, L0, w, model.pinned, model.n) if self.tethers else (keep[:0],) * 3
+        pins = model.pinned if settings.get("tethers", True) else np.zeros(0, dtype=np.int64)   # no pins: no tethers
+        ti, tp, td = _tethers(self.i, self.j, L0, w, pins, model.n)
         #: the constraints the passes visit: the tethers (one class), then the springs (their colour classes)
         nt = len(ti)
         self._all = (np.concatenate([ti, self.i]), np.concatenate([tp, self.j]),
@@ -124,22 +124,21 @@ class StrainLimiter:
         x = new.x
         if not len(self.i) or not (np.all(np.isfinite(x)) and np.all(np.isfinite(new.v))):
             return 0
-        x_in = x.copy()
-        d = x[self.j] - x[self.i]
-        over = np.sqrt(np.einsum("ij,ij->i", d, d)) - self.limit > self.tolerance * self.limit
+        lengths = self.model.backend.spring_lengths
+        over = lengths(x, self.i, self.j) - self.limit > self.tolerance * self.limit
         passes = 0
         self.pushed = np.zeros(0 if planes is None else len(planes[0]))
         if over.any():                  # else the tethers hold too: they are implied by the springs' bounds
+            x_in = x.copy()
             i, j, limit, share_i, share_j, classes = self._all
             passes, _, self.pushed = self.model.backend.limit_strain(x, i, j, limit, share_i, share_j, classes,
                                                                      self.tolerance, self.iterations, planes)
+            if passes:
+                new.v += (x - x_in) / h
+                self.stats["steps_limited"] += 1
         self.stats["springs_limited"] += int(over.sum())
-        if passes:
-            new.v += (x - x_in) / h
-            self.stats["steps_limited"] += 1
         self.stats["max_iterations"] = max(self.stats["max_iterations"], passes)
-        d = x[self.j] - x[self.i]
-        after = float(((np.sqrt(np.einsum("ij,ij->i", d, d)) - self.L0) / self.L0).max())
+        after = float(((lengths(x, self.i, self.j) - self.L0) / self.L0).max())
         self.stats["max_strain_after"] = max(self.stats["max_strain_after"], after)
         return passes
 
