@@ -139,19 +139,22 @@ class Backend:
     # ----------------------------------------------------------------- strain limiting
     def limit_strain(self, x: np.ndarray, i: np.ndarray, j: np.ndarray, limit: np.ndarray, share_i: np.ndarray,
                      share_j: np.ndarray, classes: list[np.ndarray], tolerance: float, max_passes: int,
-                     planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[int, int, np.ndarray]:
+                     planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+                     lower: np.ndarray | None = None) -> tuple[int, int, np.ndarray]:
         """Provot's passes over ``x`` in place (:mod:`implicit_cloth.strain_limit`): at most ``max_passes``
-        Gauss-Seidel passes over the colour ``classes``, each correcting the springs over ``limit`` at its start
-        and then putting the vertices of ``planes`` = ``(idx, n, offset)`` below their plane back on it.
-        Returns ``(passes made, springs over the limit before the first, how far each plane pushed its vertex
-        along its normal over all passes, m)``."""
+        Gauss-Seidel passes over the colour ``classes``, each correcting the springs outside their bounds at its
+        start (longer than ``limit``, or shorter than ``lower`` where given) and then putting the vertices of
+        ``planes`` = ``(idx, n, offset)`` below their plane back on it.
+        Returns ``(passes made, springs outside their bounds before the first, how far each plane pushed its
+        vertex along its normal over all passes, m)``."""
         first = passes = 0
         pushed = np.zeros(0 if planes is None else len(planes[0]))
         tiny = np.finfo(float).tiny
+        lo = np.zeros(len(i)) if lower is None else lower
         for it in range(max_passes):
             d = x[j] - x[i]
             l = np.sqrt(np.einsum("ij,ij->i", d, d))
-            over = l - limit > tolerance * limit
+            over = (l - limit > tolerance * limit) | (lo - l > tolerance * limit)
             if it == 0:
                 first = int(over.sum())
             if not over.any():
@@ -164,8 +167,8 @@ class Backend:
                 iv, jv = i[cls], j[cls]
                 d = x[jv] - x[iv]
                 l = np.sqrt(np.einsum("ij,ij->i", d, d))
-                e = l - limit[cls]
-                corr = (np.where(e > 0, e, 0.0) / np.maximum(l, tiny))[:, None] * d   # e n
+                e = np.where(l > limit[cls], l - limit[cls], np.minimum(l - lo[cls], 0.0))
+                corr = (e / np.maximum(l, tiny))[:, None] * d   # e n: shortens (e > 0) or lengthens (e < 0)
                 x[iv] += share_i[cls][:, None] * corr   # no vertex twice in a class: plain indexing
                 x[jv] -= share_j[cls][:, None] * corr
             if planes is not None:
@@ -209,13 +212,15 @@ class NumbaBackend(Backend):
 
     def limit_strain(self, x: np.ndarray, i: np.ndarray, j: np.ndarray, limit: np.ndarray, share_i: np.ndarray,
                      share_j: np.ndarray, classes: list[np.ndarray], tolerance: float, max_passes: int,
-                     planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[int, int, np.ndarray]:
+                     planes: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+                     lower: np.ndarray | None = None) -> tuple[int, int, np.ndarray]:
         from .kernels.strain import empty_planes, limit_passes
 
         ci, cn, co = empty_planes() if planes is None else planes
         order = np.concatenate(classes) if classes else np.zeros(0, dtype=np.int64)
         pushed = np.zeros(len(ci))
-        passes, first = limit_passes(x, i, j, limit, share_i, share_j, order, np.zeros(len(i), dtype=np.bool_),
+        lo = np.zeros(len(i)) if lower is None else np.ascontiguousarray(lower, dtype=float)
+        passes, first = limit_passes(x, i, j, lo, limit, share_i, share_j, order, np.zeros(len(i), dtype=np.bool_),
                                      float(tolerance), int(max_passes), np.asarray(ci, dtype=np.int64),
                                      np.ascontiguousarray(cn, dtype=float), np.ascontiguousarray(co, dtype=float),
                                      pushed)

@@ -150,6 +150,8 @@ class StrainLimitReport(Record):
     max_strain_after: float
     #: vertices tied to their nearest pin (0: ``tethers = false``, no pins, or a report from before tethers)
     tethers: int = 0
+    #: the in-plane springs' compression bound (1: none, as in a report from before the bound)
+    max_compression: float = 1.0
 
 
 @dataclass

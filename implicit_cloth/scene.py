@@ -51,7 +51,7 @@ ADAPTIVE_KEYS = ("enabled", "max_halvings", "grow_after", "max_strain", "max_ene
 #: [simulation.adaptive] defaults; ``enabled`` defaults to whether the integrator is implicit.
 ADAPTIVE_DEFAULTS: dict[str, Any] = {"max_halvings": 5, "grow_after": 4, "max_strain": 1.0,
                                      "max_energy_growth": 0.01, "retry_unconverged": True, "newton_iterations": 8}
-STRAIN_LIMIT_KEYS = ("max_strain", "iterations", "tethers")
+STRAIN_LIMIT_KEYS = ("max_strain", "iterations", "tethers", "max_compression")
 #: Most halvings of the step (dt / 2^30 is below a nanosecond for dt = 1 s).
 MAX_HALVINGS = 30
 SOLVER_KEYS = ("tolerance", "max_iterations", "preconditioner", "newton_iterations")
@@ -129,8 +129,11 @@ def _strain_limit(d: Any) -> dict[str, Any]:
     if "max_strain" not in d:
         raise SceneError(f"{path}.max_strain: missing (the largest relative stretch (l - L0) / L0 to allow, "
                          f"e.g. 0.1)")
-    return {"max_strain": number(f"{path}.max_strain", d["max_strain"], lo=0.0, lo_open=True),
-            "iterations": iterations, "tethers": boolean(f"{path}.tethers", d.get("tethers", True))}
+    max_strain = number(f"{path}.max_strain", d["max_strain"], lo=0.0, lo_open=True)
+    return {"max_strain": max_strain,
+            "iterations": iterations, "tethers": boolean(f"{path}.tethers", d.get("tethers", True)),
+            "max_compression": number(f"{path}.max_compression", d.get("max_compression", min(max_strain, 1.0)),
+                                      lo=0.0, hi=1.0)}
 
 
 def check_run_length(sim: Mapping[str, Any]) -> None:

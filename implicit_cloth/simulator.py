@@ -596,6 +596,7 @@ class _Recorder:
             if sim._checks_steps:   # after the whole step (collisions included), not only after limiting
                 stats["max_strain_after"] = health.max_strain
             report["strain_limit"] = {"max_strain": sim.strain_limiter.max_strain,
+                                      "max_compression": sim.strain_limiter.max_compression,
                                       "iterations": sim.strain_limiter.iterations,
                                       "tethers": sim.strain_limiter.n_tethers, **stats}
         if self.col is not None:

@@ -3,8 +3,8 @@
 The same Gauss-Seidel-by-colour-classes projection as the numpy reference (module docstring of
 :mod:`implicit_cloth.strain_limit`), spring by spring: the springs of one class share no vertex, so
 visiting them one after the other gives what the numpy path's one vectorised update per class gives. A
-pass marks the over-stretched springs from the positions at its start, corrects those of each class in
-turn (the excess taken from the current positions, corrected only while still positive), then puts every
+pass marks the springs outside their bounds from the positions at its start, corrects those of each class in
+turn (the excess taken from the current positions, corrected only while still outside), then puts every
 contact vertex below its plane back on it. Single-threaded; ``cache=True``. Importing this module imports
 numba.
 """
@@ -18,10 +18,11 @@ from .springs import spring_vector
 
 
 @njit(cache=True)
-def limit_passes(x, si, sj, limit, share_i, share_j, order, over, tolerance, max_passes, ci, cn, co, pushed):
-    """Strain-limit ``x`` in place; returns ``(passes, springs over the limit before the first pass)``.
+def limit_passes(x, si, sj, lower, limit, share_i, share_j, order, over, tolerance, max_passes, ci, cn, co, pushed):
+    """Strain-limit ``x`` in place; returns ``(passes, springs outside their bounds before the first pass)``.
 
-    ``order``: the springs class after class; ``over``: a bool work array of one entry per spring;
+    ``lower``, ``limit``: the shortest (0: no bound) and longest length each spring may take; ``order``: the
+    springs class after class; ``over``: a bool work array of one entry per spring;
     ``ci``, ``cn``, ``co``: contact vertices, normals and offsets (``n . x >= offset``), empty for none;
     ``pushed`` (one per contact, zeroed by the caller): how far each plane pushed its vertex, summed over passes.
     """
@@ -32,7 +33,7 @@ def limit_passes(x, si, sj, limit, share_i, share_j, order, over, tolerance, max
         count = 0
         for s in range(n_s):
             l = spring_vector(x, si[s], sj[s])[3]
-            o = l - limit[s] > tolerance * limit[s]
+            o = (l - limit[s] > tolerance * limit[s]) or (lower[s] - l > tolerance * limit[s])
             over[s] = o
             if o:
                 count += 1
@@ -50,7 +51,9 @@ def limit_passes(x, si, sj, limit, share_i, share_j, order, over, tolerance, max
             d0, d1, d2, l = spring_vector(x, i, j)
             e = l - limit[s]
             if e <= 0.0:
-                continue
+                e = l - lower[s]
+                if e >= 0.0:
+                    continue
             c = e / max(l, 2.2250738585072014e-308)
             c0 = c * d0
             c1 = c * d1
