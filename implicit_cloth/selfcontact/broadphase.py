@@ -21,6 +21,10 @@ from scipy.spatial import cKDTree
 
 #: Boxes with a half-extent beyond this multiple of the median are searched directly, not through the tree.
 LARGE = 4.0
+#: Most pairs the direct search of the large boxes holds at once (it goes through them in pieces): in a 128²
+#: crumple's impact step thousands of boxes are large, and testing all of them against all boxes at once
+#: took the 24 GB of the machine.
+BRUTE_PAIRS = 4_000_000
 
 
 def boxes(x0: np.ndarray, x1: np.ndarray, prims: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
@@ -77,24 +81,47 @@ def overlapping(alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi: np.ndarr
             out_j.append(j)
     big_a = np.flatnonzero(ka < 0)
     big_b = np.flatnonzero(kb_ < 0) if not same else empty
-    if len(big_a):                            # large boxes of a against every box of b
-        gi, gj = np.repeat(big_a, len(hb)), np.tile(np.arange(len(hb)), len(big_a))
-        if same:                              # one set: each pair once, as (min, max)
-            keep = (gi != gj) & ((ka[gj] >= 0) | (gi < gj))
-            gi, gj = np.minimum(gi[keep], gj[keep]), np.maximum(gi[keep], gj[keep])
-        out_i.append(gi)
-        out_j.append(gj)
-    if len(big_b):                            # large boxes of b against the other boxes of a
-        small = np.flatnonzero(ka >= 0)
-        out_i.append(np.tile(small, len(big_b)))
-        out_j.append(np.repeat(big_b, len(small)))
+    cols = [tuple(np.ascontiguousarray(c[:, axis]) for c in (alo, ahi, blo, bhi)) for axis in range(3)]
     i = np.concatenate(out_i) if out_i else empty
     j = np.concatenate(out_j) if out_j else empty
-    for axis in range(3):              # axis by axis on the pairs still overlapping, gathering one column each
-        al, ah, bl, bh = (np.ascontiguousarray(c[:, axis]) for c in (alo, ahi, blo, bhi))
+    i, j = _keep_overlapping(i, j, cols)
+    out_i, out_j = [i], [j]
+    if len(big_a):                            # large boxes of a against every box of b, a chunk at a time
+        for ch in _chunks(big_a, len(hb)):
+            gi, gj = np.repeat(ch, len(hb)), np.tile(np.arange(len(hb)), len(ch))
+            if same:                          # one set: each pair once, as (min, max)
+                keep = (gi != gj) & ((ka[gj] >= 0) | (gi < gj))
+                gi, gj = np.minimum(gi[keep], gj[keep]), np.maximum(gi[keep], gj[keep])
+            gi, gj = _keep_overlapping(gi, gj, cols)
+            out_i.append(gi)
+            out_j.append(gj)
+    if len(big_b):                            # large boxes of b against the other boxes of a
+        small = np.flatnonzero(ka >= 0)
+        for ch in _chunks(big_b, len(small)):
+            gi, gj = np.tile(small, len(ch)), np.repeat(ch, len(small))
+            gi, gj = _keep_overlapping(gi, gj, cols)
+            out_i.append(gi)
+            out_j.append(gj)
+    i = np.concatenate(out_i)
+    j = np.concatenate(out_j)
+    return i, j
+
+
+def _keep_overlapping(i: np.ndarray, j: np.ndarray, cols: list[tuple[np.ndarray, ...]]
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs ``(i, j)`` whose boxes overlap, in their order (axis by axis on the pairs still overlapping;
+    ``cols``: per axis, the lower and upper bounds of the a boxes, then of the b boxes)."""
+    for al, ah, bl, bh in cols:
         keep = (al[i] <= bh[j]) & (bl[j] <= ah[i])
         i, j = i[keep], j[keep]
     return i, j
+
+
+def _chunks(big: np.ndarray, width: int) -> list[np.ndarray]:
+    """``big`` cut into pieces of at most ``BRUTE_PAIRS // width`` boxes (at least one), so that testing a piece
+    against ``width`` boxes holds at most about BRUTE_PAIRS pairs in memory at once."""
+    step = max(1, BRUTE_PAIRS // max(width, 1))
+    return [big[k:k + step] for k in range(0, len(big), step)]
 
 
 def vertex_face_pairs(x0: np.ndarray, x1: np.ndarray, faces: np.ndarray, reach: float,
