@@ -9,12 +9,6 @@ A few primitives much larger than the rest (a fast vertex, a stretched triangle)
 the tree's output large for every pair: boxes beyond ``LARGE`` times the median half-extent are tested
 against all boxes of the other kind directly (vectorised), the rest through the tree.
 
-A frame moving at constant velocity changes no distance between two points taken at the same time, so the
-search may use the boxes of the motion ``x0 -> x1 - u`` for any one shift ``u``: :func:`frame_shift` picks the
-vertices' median displacement where that makes the boxes smaller than in the world frame (a cloth falling
-as a whole, whose world-frame boxes are as tall as its fall in a step and overlap many rows of neighbours),
-else none (part of the cloth at rest).
-
 Pairs of primitives that share a vertex (a vertex and a triangle it is a corner of, two edges with a common
 end) are never candidates. ``benchmarks/self_collision.py`` measured this against ipctk's LBVH, hash grid and
 sweep and prune (whose candidates come back as a Python list of objects) and python-fcl's managers.
@@ -40,16 +34,6 @@ def boxes(x0: np.ndarray, x1: np.ndarray, prims: np.ndarray, reach: float) -> tu
     lo = np.minimum(p0.min(axis=1), p1.min(axis=1)) - reach
     hi = np.maximum(p0.max(axis=1), p1.max(axis=1)) + reach
     return lo, hi
-
-
-def frame_shift(x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
-    """The shift ``u`` of the frame to search in (module docstring): the median displacement if the vertices'
-    paths are shorter in that frame in total, else 0."""
-    d = x1 - x0
-    u = np.median(d, axis=0)
-    if np.abs(d - u).max(axis=1).sum() < np.abs(d).max(axis=1).sum():
-        return u
-    return np.zeros(3)
 
 
 def _classes(h: np.ndarray, med: float) -> np.ndarray:

@@ -70,16 +70,15 @@ class Pairs:
              inv: np.ndarray) -> "Pairs":
         """Vertex-triangle and edge-edge candidates of the motion ``x0 -> x1`` within ``reach``; pairs with no
         movable vertex are left out."""
-        xs = x1 - broadphase.frame_shift(x0, x1)
-        v, f = broadphase.vertex_face_pairs(x0, xs, faces, reach)
-        a, b = broadphase.edge_edge_pairs(x0, xs, edges, reach)
+        v, f = broadphase.vertex_face_pairs(x0, x1, faces, reach)
+        a, b = broadphase.edge_edge_pairs(x0, x1, edges, reach)
         idx = np.concatenate([np.column_stack([v, faces[f]]), np.column_stack([edges[a], edges[b]])])
         vf = np.concatenate([np.ones(len(v), dtype=bool), np.zeros(len(a), dtype=bool)])
         movable = np.any(inv[idx] > 0, axis=1)
         idx, vf = idx[movable], vf[movable]
         d0 = np.empty(len(idx))
-        for p in range(0, len(idx), IMPACT_CHUNK):   # pair by pair: in pieces, a bounded working set
-            d0[p:p + IMPACT_CHUNK] = closest(x0, idx[p:p + IMPACT_CHUNK], vf[p:p + IMPACT_CHUNK])[2]
+        for a in range(0, len(idx), IMPACT_CHUNK):   # pair by pair: in pieces, a bounded working set
+            d0[a:a + IMPACT_CHUNK] = closest(x0, idx[a:a + IMPACT_CHUNK], vf[a:a + IMPACT_CHUNK])[2]
         return cls(idx, vf, x1.copy(), d0)
 
 
