@@ -77,8 +77,8 @@ class Pairs:
         movable = np.any(inv[idx] > 0, axis=1)
         idx, vf = idx[movable], vf[movable]
         d0 = np.empty(len(idx))
-        for a in range(0, len(idx), IMPACT_CHUNK):   # pair by pair: in pieces, a bounded working set
-            d0[a:a + IMPACT_CHUNK] = closest(x0, idx[a:a + IMPACT_CHUNK], vf[a:a + IMPACT_CHUNK])[2]
+        for p in range(0, len(idx), IMPACT_CHUNK):   # pair by pair: in pieces, a bounded working set
+            d0[p:p + IMPACT_CHUNK] = closest(x0, idx[p:p + IMPACT_CHUNK], vf[p:p + IMPACT_CHUNK])[2]
         return cls(idx, vf, x1.copy(), d0)
 
 
