@@ -107,13 +107,11 @@ class StrainLimiter:
         self.limit = (1.0 + self.max_strain) * L0
         #: the in-plane springs' (structural and shear) compression bound; 1: none
         self.max_compression = float(settings.get("max_compression", min(self.max_strain, 1.0)))
-        lower = np.zeros(len(L0))
-        if self.max_compression < 1.0 and s is not None:
-            planar = np.zeros(len(s.L0), dtype=bool)
-            for kind in ("structural", "shear"):
-                if kind in s.kinds:
-                    planar[s.kinds[kind]] = True
-            lower = np.where(planar[keep], (1.0 - self.max_compression) * L0, 0.0)
+        planar = np.zeros(0 if s is None else len(s.L0), dtype=bool)
+        for kind in ("structural", "shear"):
+            if s is not None and kind in s.kinds:
+                planar[s.kinds[kind]] = True
+        lower = np.where(planar[keep], (1.0 - self.max_compression) * L0, 0.0)   # 0: no bound
         self.lower = lower
         self.wi, self.wj = w[i], w[j]
         self.share_i = self.wi / np.maximum(self.wi + self.wj, np.finfo(float).tiny)
@@ -160,8 +158,7 @@ class StrainLimiter:
             i, j, limit, lower, share_i, share_j, classes = self._all
             passes, _, self.pushed = self.model.backend.limit_strain(x, i, j, limit, share_i, share_j, classes,
                                                                      self.tolerance, self.iterations, planes,
-                                                                     lower if self.max_compression < 1.0
-                                                                     else None)
+                                                                     lower)
             if passes:
                 new.v += (x - x_in) / h
                 self.stats["steps_limited"] += 1

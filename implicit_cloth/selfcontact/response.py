@@ -77,9 +77,15 @@ class Pairs:
         movable = np.any(inv[idx] > 0, axis=1)
         idx, vf = idx[movable], vf[movable]
         d0 = np.empty(len(idx))
-        for p in range(0, len(idx), IMPACT_CHUNK):   # pair by pair: in pieces, a bounded working set
-            d0[p:p + IMPACT_CHUNK] = closest(x0, idx[p:p + IMPACT_CHUNK], vf[p:p + IMPACT_CHUNK])[2]
+        for p in _pieces(len(idx)):
+            d0[p] = closest(x0, idx[p], vf[p])[2]
         return cls(idx, vf, x1.copy(), d0)
+
+
+def _pieces(k: int) -> list[slice]:
+    """``range(k)`` in slices of at most IMPACT_CHUNK pairs: each pair's distance or time of impact depends on
+    that pair alone, so computing them piece by piece gives the same numbers with a bounded working set."""
+    return [slice(a, min(a + IMPACT_CHUNK, k)) for a in range(0, k, IMPACT_CHUNK)]
 
 
 def closest(x: np.ndarray, idx: np.ndarray, vf: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -139,9 +145,8 @@ def impacts(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray, tol
     if k <= IMPACT_CHUNK:
         return _impacts(x0, x1, idx, vf, tol, d0)
     s, n = np.full(k, np.inf), np.zeros((k, 3))
-    for a in range(0, k, IMPACT_CHUNK):     # each pair on its own: the same numbers, a bounded working set
-        b = min(a + IMPACT_CHUNK, k)
-        s[a:b], n[a:b] = _impacts(x0, x1, idx[a:b], vf[a:b], tol, None if d0 is None else d0[a:b])
+    for p in _pieces(k):
+        s[p], n[p] = _impacts(x0, x1, idx[p], vf[p], tol, None if d0 is None else d0[p])
     return s, n
 
 
