@@ -366,3 +366,68 @@ def test_the_searches_and_impact_tests_in_pieces_give_the_same_pairs_and_times(m
     lo, hi = broadphase.boxes(x0, x1, edges, 0.005)
     h = (0.5 * (hi - lo)).max(axis=1)
     assert np.sum(h > broadphase.LARGE * np.median(h)) >= 12
+
+
+def _keys(pairs):
+    """Each pair as a key: a vertex and its triangle, or the two edges in either order."""
+    return [(True, *map(int, i)) if f else (False, *sorted([tuple(map(int, i[:2])), tuple(map(int, i[2:]))]))
+            for f, i in zip(pairs.vf, pairs.idx)]
+
+
+def _pair_set(pairs):
+    return set(_keys(pairs))
+
+
+def test_searching_again_around_the_moved_vertices_gives_the_whole_search_of_the_same_motion():
+    """The impact-zone passes move a few vertices at a time; the candidates are searched again only around them
+    (the primitives touching them against all), the rest kept. The result is the candidate set a whole search
+    gives for the ends the search saw (the moved vertices' new ends, the others' earlier ones), each pair once,
+    with its distance at the start; and pairs with no moved vertex keep their place."""
+    from implicit_cloth.selfcontact import response
+
+    x0, x1, faces, edges = _random_motion()
+    inv = np.ones(len(x0))
+    inv[:3] = 0.0
+    pairs = response.Pairs.find(x0, x1, faces, edges, 0.01, inv)
+    rng = np.random.default_rng(2)
+    far = np.zeros(len(x0), dtype=bool)
+    far[rng.choice(len(x0), 40, replace=False)] = True
+    x2 = x1.copy()
+    x2[far] += 0.03 * rng.normal(size=(40, 3))
+    x2[~far] += 0.001                                   # the others drift a little: not searched again
+    new, kept = pairs.refresh(x0, x2, far, faces, edges, 0.01, inv)
+    ref = x1.copy()
+    ref[far] = x2[far]
+    whole = response.Pairs.find(x0, ref, faces, edges, 0.01, inv)
+    assert len(_pair_set(new)) == new.count == whole.count
+    assert _pair_set(new) == _pair_set(whole)
+    assert np.array_equal(new.x1, ref)
+    assert np.array_equal(new.idx[:len(kept)], pairs.idx[kept]) and not np.any(far[new.idx[:len(kept)]])
+    order = {k: j for j, k in enumerate(_keys(whole))}
+    at = [order[k] for k in _keys(new)]
+    assert np.allclose(new.d0, whole.d0[at], rtol=0, atol=1e-15)
+    # pairs gained and lost around the moved vertices (else the test would not test the search)
+    assert _pair_set(new) - _pair_set(pairs) and _pair_set(pairs) - _pair_set(new)
+
+
+def test_the_impact_rounds_with_searches_around_moved_vertices_find_every_impact():
+    """After a refresh the kept pairs keep their times of impact and the new ones are tested: the same times as
+    testing every candidate again."""
+    from implicit_cloth.selfcontact import response
+
+    x0, x1, faces, edges = _random_motion(seed=7)
+    inv = np.ones(len(x0))
+    r = response.Response(faces, edges, np.ones(len(x0)), 0.01, 0.0, 4)
+    toi = response._Impacts(r)
+    pairs, s, _ = toi.update(response.Pairs.find(x0, x1, faces, edges, 0.01, inv), x0, x1, inv)
+    rng = np.random.default_rng(3)
+    moved = np.zeros(len(x0), dtype=bool)
+    moved[rng.choice(len(x0), 30, replace=False)] = True
+    x2 = x1.copy()
+    x2[moved] += 0.03 * rng.normal(size=(30, 3))
+    toi.moved(moved)
+    pairs2, s2, n2 = toi.update(pairs, x0, x2, inv)
+    assert pairs2 is not pairs and pairs2.count < 2 * pairs.count
+    s_all, n_all = response.impacts(x0, x2, pairs2.idx, pairs2.vf, r.tol, pairs2.d0)
+    assert np.array_equal(s2, s_all) and np.array_equal(n2[np.isfinite(s2)], n_all[np.isfinite(s_all)])
+    assert np.isfinite(s2).sum() > 5

@@ -125,22 +125,49 @@ def _chunks(big: np.ndarray, width: int) -> list[np.ndarray]:
 
 
 def vertex_face_pairs(x0: np.ndarray, x1: np.ndarray, faces: np.ndarray, reach: float,
-                      verts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate (vertex, face) pairs: a vertex's path within ``reach`` of a face's box, the face not its own."""
+                      verts: np.ndarray | None = None, face_ids: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate (vertex, face) pairs: a vertex's path within ``reach`` of a face's box, the face not its own
+    (of the vertices ``verts`` and the faces ``face_ids`` only, when given)."""
     vid = np.arange(len(x0)) if verts is None else verts
+    fid = np.arange(len(faces)) if face_ids is None else face_ids
     vlo, vhi = boxes(x0, x1, vid[:, None], reach)
-    flo, fhi = boxes(x0, x1, faces, 0.0)
+    flo, fhi = boxes(x0, x1, faces[fid], 0.0)
     i, j = overlapping(vlo, vhi, flo, fhi)
-    v = vid[i]
-    keep = np.all(faces[j] != v[:, None], axis=1)
-    return v[keep], j[keep]
+    v, f = vid[i], fid[j]
+    keep = np.all(faces[f] != v[:, None], axis=1)
+    return v[keep], f[keep]
 
 
 def edge_edge_pairs(x0: np.ndarray, x1: np.ndarray, edges: np.ndarray, reach: float
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate edge pairs ``(a, b)``, ``a < b``, whose boxes come within ``reach``, sharing no vertex."""
+    """Candidate edge pairs ``(a, b)`` (each once, in either order) whose boxes come within ``reach``, sharing no
+    vertex."""
     lo, hi = boxes(x0, x1, edges, 0.5 * reach)
     a, b = overlapping(lo, hi, lo, hi, same=True)
     ea, eb = edges[a], edges[b]
     keep = (ea[:, 0] != eb[:, 0]) & (ea[:, 0] != eb[:, 1]) & (ea[:, 1] != eb[:, 0]) & (ea[:, 1] != eb[:, 1])
     return a[keep], b[keep]
+
+
+def pairs_around(x0: np.ndarray, x1: np.ndarray, faces: np.ndarray, edges: np.ndarray, reach: float,
+                 around: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """The candidate pairs of :func:`vertex_face_pairs` and :func:`edge_edge_pairs` that have a vertex in
+    ``around`` (boolean, per vertex), each once: the primitives touching those vertices searched against all
+    (a search again after a few vertices moved costs in proportion to them, not to the cloth)."""
+    verts = np.flatnonzero(around)
+    v1, f1 = vertex_face_pairs(x0, x1, faces, reach, verts=verts)
+    touched = np.flatnonzero(np.any(around[faces], axis=1))
+    v2, f2 = vertex_face_pairs(x0, x1, faces, reach, verts=np.flatnonzero(~around), face_ids=touched)
+    sel = np.flatnonzero(np.any(around[edges], axis=1))
+    lo, hi = boxes(x0, x1, edges, 0.5 * reach)
+    i, j = overlapping(lo[sel], hi[sel], lo, hi)
+    a, b = sel[i], j
+    mine = np.zeros(len(edges), dtype=bool)
+    mine[sel] = True
+    once = ~mine[b] | (a < b)                   # a pair of two such edges is found from both: keep one
+    a, b = a[once], b[once]
+    a, b = np.minimum(a, b), np.maximum(a, b)
+    ea, eb = edges[a], edges[b]
+    keep = (ea[:, 0] != eb[:, 0]) & (ea[:, 0] != eb[:, 1]) & (ea[:, 1] != eb[:, 0]) & (ea[:, 1] != eb[:, 1])
+    return (np.concatenate([v1, v2]), np.concatenate([f1, f2])), (a[keep], b[keep])

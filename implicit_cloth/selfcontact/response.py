@@ -41,6 +41,9 @@ MAX_ZONE_PASSES = 50
 #: A vertex whose corrected end position left its box of the broad phase by more than this fraction of the
 #: thickness has the candidates found again.
 REBUILD_FRACTION = 0.5
+#: When more than this fraction of the vertices drifted so, the candidates are searched again whole, not
+#: around them.
+AROUND_FRACTION = 0.25
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -80,6 +83,31 @@ class Pairs:
         for p in _pieces(len(idx)):
             d0[p] = closest(x0, idx[p], vf[p])[2]
         return cls(idx, vf, x1.copy(), d0)
+
+    def refresh(self, x0: np.ndarray, x1: np.ndarray, far: np.ndarray, faces: np.ndarray, edges: np.ndarray,
+                reach: float, inv: np.ndarray) -> tuple["Pairs", np.ndarray]:
+        """The candidates after the vertices ``far`` (boolean) moved their ends to ``x1``: the pairs among the
+        other vertices are kept, those with a vertex in ``far`` searched again. Returns the new candidates (the
+        kept ones first) and the indices of the kept ones among these.
+
+        The result is the candidate set :meth:`find` gives for the motion from ``x0`` to the ends the search
+        last saw (``x1`` for the vertices ``far``, the earlier ends for the others), so the rule that searches
+        again once a vertex drifts from where the search saw it covers every pair as before.
+        """
+        ref = self.x1.copy()
+        ref[far] = x1[far]
+        kept = np.flatnonzero(~np.any(far[self.idx], axis=1))
+        (v, f), (a, b) = broadphase.pairs_around(x0, ref, faces, edges, reach, far)
+        idx = np.concatenate([np.column_stack([v, faces[f]]), np.column_stack([edges[a], edges[b]])])
+        vf = np.concatenate([np.ones(len(v), dtype=bool), np.zeros(len(a), dtype=bool)])
+        movable = np.any(inv[idx] > 0, axis=1)
+        idx, vf = idx[movable], vf[movable]
+        d0 = np.empty(len(idx))
+        for p in _pieces(len(idx)):
+            d0[p] = closest(x0, idx[p], vf[p])[2]
+        new = Pairs(np.concatenate([self.idx[kept], idx]), np.concatenate([self.vf[kept], vf]), ref,
+                    np.concatenate([self.d0[kept], d0]))
+        return new, kept
 
 
 def _pieces(k: int) -> list[slice]:
@@ -301,12 +329,17 @@ class Response:
         dn1 = np.minimum(np.maximum(-vn1, 0.0), dn)
         v1 += impulses(v1, idx, c, n, dn1, inv, mu, self.wall)
 
-    def _fresh(self, pairs: Pairs, x0: np.ndarray, x1: np.ndarray, inv: np.ndarray) -> Pairs:
-        """The candidates again if a vertex's end moved away from where the broad phase saw it."""
-        drift = np.abs(x1 - pairs.x1).max(initial=0.0)
-        if drift <= REBUILD_FRACTION * self.th:
-            return pairs
-        return Pairs.find(x0, x1, self.faces, self.edges, self.th, inv)
+    def _fresh(self, pairs: Pairs, x0: np.ndarray, x1: np.ndarray, inv: np.ndarray
+               ) -> tuple[Pairs, np.ndarray | None]:
+        """The candidates again around the vertices whose end moved away from where the broad phase saw it (all
+        of them when many did), and the indices of the pairs kept (None: all new, or no change)."""
+        far = np.abs(x1 - pairs.x1).max(axis=1) > REBUILD_FRACTION * self.th
+        count = int(np.count_nonzero(far))
+        if not count:
+            return pairs, None
+        if count > AROUND_FRACTION * len(x0):
+            return Pairs.find(x0, x1, self.faces, self.edges, self.th, inv), None
+        return pairs.refresh(x0, x1, far, self.faces, self.edges, self.th, inv)
 
     # ------------------------------------------------------------------ rigid impact zones
     def _zones(self, x0, vb, v1, h, inv, pairs: Pairs, hit, info, toi: "_Impacts") -> None:
@@ -386,7 +419,8 @@ class _Impacts:
     def __init__(self, response: Response) -> None:
         self.r = response
         self.pairs: Pairs | None = None
-        self.s = self.n = np.zeros(0)
+        self.s: np.ndarray = np.zeros(0)
+        self.n: np.ndarray = np.zeros((0, 3))
         self.changed: np.ndarray | None = None
 
     def moved(self, changed: np.ndarray) -> None:
@@ -394,11 +428,21 @@ class _Impacts:
 
     def update(self, pairs: Pairs, x0: np.ndarray, x1: np.ndarray, inv: np.ndarray
                ) -> tuple[Pairs, np.ndarray, np.ndarray]:
-        fresh = self.r._fresh(pairs, x0, x1, inv)
-        if fresh is not self.pairs or self.changed is None:
+        fresh, kept = self.r._fresh(pairs, x0, x1, inv)
+        if self.changed is None or (fresh is not self.pairs and kept is None):
             self.s, self.n = impacts(x0, x1, fresh.idx, fresh.vf, self.r.tol, fresh.d0)
         else:
-            sel = np.flatnonzero(np.any(self.changed[fresh.idx], axis=1))
+            if fresh is not self.pairs:         # kept pairs first, their times as they were; the new ones tested
+                assert self.pairs is not None and kept is not None
+                s, n = np.full(fresh.count, np.inf), np.zeros((fresh.count, 3))
+                s[:len(kept)], n[:len(kept)] = self.s[kept], self.n[kept]
+                self.s, self.n = s, n
+                test = np.zeros(fresh.count, dtype=bool)
+                test[len(kept):] = True
+            else:
+                test = np.zeros(fresh.count, dtype=bool)
+            test |= np.any(self.changed[fresh.idx], axis=1)
+            sel = np.flatnonzero(test)
             if len(sel):
                 self.s[sel], self.n[sel] = impacts(x0, x1, fresh.idx[sel], fresh.vf[sel], self.r.tol, fresh.d0[sel])
         self.pairs, self.changed = fresh, None
