@@ -366,21 +366,22 @@ class Response:
             label[:] = -1
             label[members] = label_m
             before = vb.copy()
-            self._rigid(x0, vb, v1, h, inv, label)
+            rigid = self._rigid(x0, vb, v1, h, inv, label)
             toi.moved(np.any(vb != before, axis=1))
             x1 = x0 + h * vb
             pairs, s, _ = toi.update(pairs, x0, x1, inv)
-            hit = np.isfinite(s)
+            hit = np.isfinite(s) & ~_within(label, rigid, pairs.idx)
             if not np.any(hit):
                 break
         info.unresolved = int(hit.sum())
         info.zones = int(label.max() + 1)
         info.zone_vertices = int(np.count_nonzero(label >= 0))
 
-    def _rigid(self, x0, vb, v1, h, inv, label) -> None:
+    def _rigid(self, x0, vb, v1, h, inv, label) -> np.ndarray:
         """Each zone's vertices move rigidly (their own linear and angular momentum). A zone with a pinned vertex
         translates with the pins' mean motion; one with a vertex held by an obstacle translates with its mean
-        motion, or stays where it started if that goes into an obstacle holding one of its vertices."""
+        motion, or stays where it started if that goes into an obstacle holding one of its vertices. Returns
+        which zones moved rigidly over the step (all but those whose pins move apart)."""
         zv = np.flatnonzero(label >= 0)
         z = label[zv]
         nz = int(z.max()) + 1
@@ -389,26 +390,48 @@ class Response:
         held = np.any(self.wall[zv] != 0, axis=1) if self.wall is not None else np.zeros(len(zv), dtype=bool)
         n_pin = np.bincount(z[pinned], minlength=nz)
         n_held = np.bincount(z[held], minlength=nz)
+        mean_b = np.zeros((nz, 3))
         for arr in (vb, v1):
             # pinned: the pins' mean velocity; held: the zone's mean velocity (momentum kept), or rest
             w = np.where(n_pin[z] > 0, pinned.astype(float), m)
             mean = _sums(z, nz, w[:, None] * arr[zv]) / np.maximum(np.bincount(z, weights=w, minlength=nz),
                                                                     1e-300)[:, None]
+            if arr is vb:
+                mean_b = mean
             if self.wall is not None and np.any(held):
                 into = np.zeros(nz, dtype=bool)
                 np.logical_or.at(into, z[held], _dot(mean[z[held]], self.wall[zv[held]]) < 0)
                 mean[into & (n_pin == 0)] = 0.0
             sel = ~pinned & ((n_pin[z] > 0) | (n_held[z] > 0))
             arr[zv[sel]] = mean[z[sel]]
+        # a zone's pins moving apart (not with one velocity) do not move it rigidly
+        spread = np.zeros(nz)
+        if np.any(pinned):
+            np.maximum.at(spread, z[pinned], np.abs(vb[zv[pinned]] - mean_b[z[pinned]]).max(axis=1))
+        rigid = spread == 0
         free = (n_pin[z] == 0) & (n_held[z] == 0)
         if not np.any(free):
-            return
+            return rigid
         zv, m = zv[free], m[free]
         _, z = np.unique(z[free], return_inverse=True)
         nz = int(z.max()) + 1
         x1 = x0[zv] + h * rigid_velocities(x0[zv], vb[zv], m, z, nz, h)
         vb[zv] = (x1 - x0[zv]) / h
         v1[zv] = rigid_velocities(x1, v1[zv], m, z, nz, None)
+        return rigid
+
+
+def _within(label: np.ndarray, rigid: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Pairs whose four vertices are in one zone that moved rigidly: they keep their distances over the step
+    (its end is a rigid motion of a start without crossings), so a time of impact found for them is not an
+    impact: the straight-line motion's coplanarity cubic of a rigidly moving pair keeps its sign (it scales
+    by a positive determinant), and such a hit is a pair already coplanar and within the tolerance at the
+    start (layers lying flat on each other), which no zone motion could clear (Bridson et al. 2002, §7.4)."""
+    z = label[idx]
+    same = np.all(z == z[:, :1], axis=1) & (z[:, 0] >= 0)
+    out = np.zeros(len(idx), dtype=bool)
+    out[same] = rigid[z[same, 0]]
+    return out
 
 
 class _Impacts:
