@@ -64,6 +64,9 @@ VARIANTS: dict[str, dict] = {
     "W_gs": {"cycle": "W", "smoother": "gs"},
     "vvar": {"growth": 2}, "vvar_cheb2": {"growth": 2, "smoother": "chebyshev", "degree": 2},
     "two_grid": {"two_grid": True},
+    "V3_direct": {"depth": 2}, "V4_direct": {"depth": 3},
+    "Wc": {"cycle": "Wc"}, "Wc_gs": {"cycle": "Wc", "smoother": "gs"},
+    "cheb2_safe": {"smoother": "chebyshev", "degree": 2, "safe": True},
     "sa_rigid": {},
 }
 
@@ -162,13 +165,15 @@ class VCycle:
 
     def __init__(self, A, filt: Filter, Ps: list, box: list, nu: int = 1, cycle: str = "V",
                  smoother: str = "jacobi", degree: int = 2, omega: float = 0.7, growth: int = 1,
-                 two_grid: bool = False) -> None:
+                 two_grid: bool = False, safe: bool = False, depth: int | None = None) -> None:
         t0 = time.perf_counter()
         S = _bdiag(filt.matrices())
         I3 = sp.identity(A.shape[0], format="csr")
         As = [_canonical(S @ A @ S + (I3 - S))]
         self.P: list = []
-        for P in Ps[:1] if two_grid else Ps:
+        if two_grid:
+            depth = 1
+        for P in Ps if depth is None else Ps[:depth]:
             P3 = sp.csr_array(sp.kron(P, sp.identity(3), format="csr"))
             self.P.append(P3)
             As.append(_canonical(P3.T @ As[-1] @ P3))
@@ -178,8 +183,15 @@ class VCycle:
         self.Dblocks = [inv3(_diag_blocks(Al)) for Al in As[:-1]]
         self.D = [_bdiag(B) for B in self.Dblocks]
         #: the coarsest solve: dense Cholesky, or a sparse LU for the two-grid diagnostic (exact coarse solve)
-        if two_grid:
-            self.coarse = spla.splu(sp.csc_matrix(As[-1])).solve
+        if depth is not None:    # a sparse LU of the coarsest level; its two triangular solves counted as work
+            lu = spla.splu(sp.csc_matrix(As[-1]))
+            cw = (lu.L.nnz + lu.U.nnz) / nnz0
+            self.coarse_nnz_share = cw
+
+            def coarse(r, lu=lu, cw=cw):
+                box[0] += cw
+                return lu.solve(r)
+            self.coarse = coarse
         else:
             chol = sla.cho_factor(As[-1].toarray())
             self.coarse = lambda r: sla.cho_solve(chol, r)
@@ -189,6 +201,10 @@ class VCycle:
         self.setup_work = 0.0
         if smoother == "chebyshev":
             for Al, D in zip(self.A[:-1], self.D):
+                if safe:       # a guaranteed bound: the spectral radius is at most the row-sum norm of D^-1 A
+                    self.lmax.append(float(abs(D @ Al.A).sum(axis=1).max()))
+                    box[0] += Al.w
+                    continue
                 v = np.random.default_rng(0).standard_normal(Al.shape[0])
                 lam = 1.0
                 for _ in range(10):
@@ -253,7 +269,8 @@ class VCycle:
         if l == len(self.A) - 1:
             return self.coarse(b)
         x = self._smooth(l, b, None)
-        for _ in range(2 if self.cycle == "W" and l < len(self.A) - 2 else 1):
+        gamma = 2 if (self.cycle == "W" or (self.cycle == "Wc" and l > 0)) and l < len(self.A) - 2 else 1
+        for _ in range(gamma):
             x = x + self.P[l] @ self._cycle(l + 1, self.P[l].T @ (b - self.A[l] @ x))
         return self._smooth(l, b, x, backward=True)
 
@@ -329,17 +346,21 @@ def solve_variants(sysd: dict, variants: list[str], tol: float) -> list[dict]:
             print(f"{sysd['n']:4d}² step {sysd['step']:3d} {name:9s} failed: {type(e).__name__}: {e}", flush=True)
             rows.append({"n": sysd["n"], "step": sysd["step"], "variant": name, "failed": f"{type(e).__name__}: {e}"})
             continue
+        work = box[0]
+        rng = np.random.default_rng(1)       # is the preconditioner SPD on the free space? (r^T M r of filtered r)
+        rmr = min(float(r @ pc.apply(r)) / float(r @ r) for r in (filt.apply(rng.standard_normal(len(b)))
+                                                                    for _ in range(3)))
         d3, z3 = dv.reshape(-1, 3), z.reshape(-1, 3)
         exact = bool(np.array_equal(d3[filt.fixed], z3[filt.fixed]))
         row = {"n": sysd["n"], "step": sysd["step"], "variant": name, "iterations": res.iterations,
                "converged": res.converged, "true_error": float(np.linalg.norm(dv - ref) / np.linalg.norm(ref)),
-               "work": box[0], "work_per_iteration": box[0] / max(res.iterations, 1),
+               "work": work, "work_per_iteration": work / max(res.iterations, 1), "min_rMr": rmr,
                "setup_work": pc.setup_work, "setup_s": pc.setup_s, "solve_s": solve_s, "direct_s": direct_s,
                "pins_exact": exact, "library_iterations": sysd["library_iterations"],
                "colours": pc.n_colours() if isinstance(pc, VCycle) else []}
         rows.append(row)
         print(f"{sysd['n']:4d}² step {sysd['step']:3d} {name:9s} its {res.iterations:4d} (library V {sysd['library_iterations']})"
-              f"  true err {row['true_error']:.1e}  work {row['work']:6.1f} ({row['work_per_iteration']:.2f}/it"
+              f"  true err {row['true_error']:.1e}{'' if rmr > 0 else ' (M INDEFINITE)'}  work {row['work']:6.1f} ({row['work_per_iteration']:.2f}/it"
               f" + setup {pc.setup_work:.0f})  setup {1e3 * pc.setup_s:.0f} ms  solve {1e3 * solve_s:.0f} ms"
               + (f"  colours {row['colours']}" if row["colours"] else ""), flush=True)
     return rows
