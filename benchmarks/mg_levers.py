@@ -18,6 +18,10 @@ matrices of the filtered fine matrix ``S A S + (I - S)``, dense Cholesky at the 
   ``lmax`` 1.1 times a 10-step power estimate per level at setup;
 * ``W``, ``W_cheb2``, ``W_gs``: the W-cycle (two coarse corrections at every level but the last two)
   with Jacobi / Chebyshev / Gauss-Seidel smoothing;
+* ``vvar``: the variable V-cycle (2^l sweeps on level l); ``Wc`` / ``Wc_gs``: V at the fine level, W below it;
+* ``cheb2_safe``: Chebyshev on the guaranteed bound ``||D^-1 A||_inf`` instead of a power estimate;
+* diagnostics: ``two_grid`` (an exact coarse solve on the 2h grid, sparse LU), ``V3_direct`` / ``V4_direct`` (the
+  V-cycle cut to 3 / 4 levels, sparse LU at the coarsest; its triangular solves counted as work);
 * ``sa_rigid``: pyamg's smoothed aggregation of ``S A S + (I - S)`` (3x3 blocks) with the six rigid motions at the
   step's positions as near-null space, its default V-cycle (symmetric block Gauss-Seidel) as preconditioner;
   its setup is pyamg's, per system.
@@ -33,7 +37,8 @@ Usage::
     python benchmarks/mg_levers.py --sizes 32 64 128 256 --out benchmarks/results
     python benchmarks/mg_levers.py --sizes 32 64 --variants jacobi gs --steps 1 10
 
-Writes ``OUT/mg_levers.{json,md}``. Never asserts.
+Writes ``OUT/mg_levers.{json,md}`` (``--merge`` rebuilds them from earlier runs' JSON; the notes below the table in
+``benchmarks/results/mg_levers.md`` are hand-written). Never asserts.
 """
 
 from __future__ import annotations
