@@ -1,0 +1,469 @@
+"""Multigrid levers for an iteration-flat solve: iterations, work and true error on captured real systems.
+
+Scene: the hanging stiff cloth of ``scaling.py`` (k = 1e4 N/m, backward Euler, dt = 1/60 s, fixed steps: one
+solve a step, default solver settings). The linear system of steps ``--steps`` (matrix, right-hand side,
+prescribed dv, Baraff-Witkin filter, positions) is captured at every size, and each preconditioner variant is
+the preconditioner of the library's filtered PCG (``filtered_pcg(compiled=False)``, tolerance ``--tolerance``,
+its stopping rule and mass bound unchanged) on the same systems.
+
+Variants (a numpy V-cycle written here on the library's hierarchy: bilinear prolongations, Galerkin coarse
+matrices of the filtered fine matrix ``S A S + (I - S)``, dense Cholesky at the coarsest level):
+
+* ``jacobi``: today's V-cycle, one damped (0.7) block-Jacobi sweep pre and post (checked against the library's
+  own numpy ``Multigrid``: same iterations);
+* ``jacobi2``, ``jacobi3``: two / three sweeps;
+* ``gs``: symmetric multicolour block Gauss-Seidel (a greedy colouring of each level's block graph; forward
+  colour order pre, backward post, each colour one vectorised block update);
+* ``cheb2``, ``cheb3``: Chebyshev polynomial of ``D^-1 A`` of degree 2 / 3 on ``[lmax / 30, lmax]``,
+  ``lmax`` 1.1 times a 10-step power estimate per level at setup;
+* ``W``, ``W_cheb2``, ``W_gs``: the W-cycle (two coarse corrections at every level but the last two)
+  with Jacobi / Chebyshev / Gauss-Seidel smoothing;
+* ``vvar``: the variable V-cycle (2^l sweeps on level l); ``Wc`` / ``Wc_gs``: V at the fine level, W below it;
+* ``cheb2_safe``: Chebyshev on the guaranteed bound ``||D^-1 A||_inf`` instead of a power estimate;
+* diagnostics: ``two_grid`` (an exact coarse solve on the 2h grid, sparse LU), ``V3_direct`` / ``V4_direct`` (the
+  V-cycle cut to 3 / 4 levels, sparse LU at the coarsest; its triangular solves counted as work);
+* ``sa_rigid``: pyamg's smoothed aggregation of ``S A S + (I - S)`` (3x3 blocks) with the six rigid motions at the
+  step's positions as near-null space, its default V-cycle (symmetric block Gauss-Seidel) as preconditioner;
+  its setup is pyamg's, per system.
+
+Work: every product with a level's matrix (CG's own products, residuals, smoothing sweeps, a colour's rows) is
+counted at its share of the fine level's stored entries, so "work" is in fine-level SpMVs; block-diagonal
+solves, transfers and the coarsest Cholesky solve are not counted (each well under a fine SpMV at these sizes).
+True error: ``|dv - dv*| / |dv*|`` against scipy's ``spsolve`` of the filtered system. Times are numpy on a
+shared machine: an indication only.
+
+Usage::
+
+    python benchmarks/mg_levers.py --sizes 32 64 128 256 --out benchmarks/results
+    python benchmarks/mg_levers.py --sizes 32 64 --variants jacobi gs --steps 1 10
+
+Writes ``OUT/mg_levers.{json,md}`` (``--merge`` rebuilds them from earlier runs' JSON; the notes below the table in
+``benchmarks/results/mg_levers.md`` are hand-written). Never asserts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from _common import ROOT, hanging_stiff, ic, machine, write_outputs
+
+from implicit_cloth.solvers import make_preconditioner
+from implicit_cloth.solvers.blocks import inv3
+from implicit_cloth.solvers.multigrid import grid_prolongations
+from implicit_cloth.solvers.pcg import Filter, filtered_pcg
+
+H = 1 / 60
+
+VARIANTS: dict[str, dict] = {
+    "jacobi": {}, "jacobi2": {"nu": 2}, "jacobi3": {"nu": 3},
+    "gs": {"smoother": "gs"},
+    "cheb2": {"smoother": "chebyshev", "degree": 2}, "cheb3": {"smoother": "chebyshev", "degree": 3},
+    "W": {"cycle": "W"}, "W_cheb2": {"cycle": "W", "smoother": "chebyshev", "degree": 2},
+    "W_gs": {"cycle": "W", "smoother": "gs"},
+    "vvar": {"growth": 2}, "vvar_cheb2": {"growth": 2, "smoother": "chebyshev", "degree": 2},
+    "two_grid": {"two_grid": True},
+    "V3_direct": {"depth": 2}, "V4_direct": {"depth": 3},
+    "Wc": {"cycle": "Wc"}, "Wc_gs": {"cycle": "Wc", "smoother": "gs"},
+    "cheb2_safe": {"smoother": "chebyshev", "degree": 2, "safe": True},
+    "sa_rigid": {},
+}
+
+
+# ----------------------------------------------------------------------------- capture
+def capture(n: int, k: float, steps: list[int]) -> list[dict]:
+    """The linear systems of the given steps of a default fixed-step run (one solve a step).
+
+    Also solves each with the library's own numpy ``Multigrid`` (today's V-cycle), for the check of ``jacobi``.
+    """
+    d = hanging_stiff(n, k)
+    d["simulation"]["adaptive"] = {"enabled": False}
+    sim = ic.Simulator(ic.Scene.from_dict(d), dt=H)
+    integ, model = sim.integrator, sim.model
+    lib = make_preconditioner("multigrid", model, "numpy")
+    mass3 = np.repeat(model.masses, 3)
+    out: list[dict] = []
+    orig = integ._solve
+    want = set(steps)
+    cur = {"step": 0}
+
+    def spy(A, b, z, filt, info, guess=None, tolerance=None):
+        if cur["step"] in want:
+            A0, b0, z0 = sp.csr_array(A, copy=True), b.reshape(-1).copy(), z.reshape(-1).copy()
+            f0 = Filter(filt.n, filt.fixed.copy(), filt.partial.copy(), filt.partial_S.copy())
+            lib.setup(model.system, f0)
+            _, res = filtered_pcg(A0, b0, z0, f0, lib, integ.tolerance, 5000, mass=mass3, compiled=False)
+            out.append({"A": A0, "b": b0, "z": z0, "filt": f0, "x": sim.positions.copy(), "step": cur["step"],
+                        "library_iterations": res.iterations})
+        return orig(A, b, z, filt, info, guess, tolerance)
+
+    integ._solve = spy
+    for s in range(1, max(steps) + 1):
+        cur["step"] = s
+        sim.step(1)
+    for r in out:
+        r.update(n=n, grid=model.geometry.grid_shape, mass3=mass3, tol=integ.tolerance)
+    return out
+
+
+# ----------------------------------------------------------------------------- counting
+class Counted:
+    """A matrix whose products are counted at ``weight`` (its share of the fine level's entries) in ``box``."""
+
+    def __init__(self, A, weight: float, box: list) -> None:
+        self.A, self.w, self.box = A, weight, box
+        self.shape = A.shape
+
+    def __matmul__(self, x):
+        self.box[0] += self.w
+        return self.A @ x
+
+
+def _bdiag(B: np.ndarray) -> sp.csr_array:
+    n = len(B)
+    return sp.csr_array(sp.bsr_matrix((B, np.arange(n), np.arange(n + 1)), shape=(3 * n, 3 * n)).tocsr())
+
+
+def _canonical(A) -> sp.csr_array:
+    """A CSR copy with sorted, summed indices and int64 index arrays."""
+    A = sp.csr_array(A, copy=True)
+    A.sum_duplicates()
+    A.sort_indices()
+    A.indptr, A.indices = A.indptr.astype(np.int64), A.indices.astype(np.int64)
+    return A
+
+
+def _diag_blocks(A) -> np.ndarray:
+    A = sp.csr_array(A)
+    n = A.shape[0] // 3
+    i = np.arange(n) * 3
+    return np.stack([np.stack([A[i + a, i + b] for b in range(3)], -1) for a in range(3)], -2)
+
+
+def greedy_colours(A) -> np.ndarray:
+    """A greedy colouring of the block graph of ``A`` (3x3 blocks): no two coupled vertices share a colour."""
+    B = sp.csr_array(A)
+    n = B.shape[0] // 3
+    # block row i: CSR rows 3i..3i+2 (the pointers copied: a strided view here corrupted the heap on sum_duplicates)
+    G = sp.csr_array((np.ones(B.nnz), B.indices // 3, np.array(B.indptr[::3], dtype=np.int64)), shape=(n, n))
+    G.sum_duplicates()
+    ptr, idx = G.indptr, G.indices
+    col = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        used = set(col[idx[ptr[i]:ptr[i + 1]]].tolist())
+        c = 0
+        while c in used:
+            c += 1
+        col[i] = c
+    return col
+
+
+# ----------------------------------------------------------------------------- the numpy V-cycle
+class VCycle:
+    """The V-/W-cycle of the module docstring on the library's hierarchy, with a choice of smoother."""
+
+    def __init__(self, A, filt: Filter, Ps: list, box: list, nu: int = 1, cycle: str = "V",
+                 smoother: str = "jacobi", degree: int = 2, omega: float = 0.7, growth: int = 1,
+                 two_grid: bool = False, safe: bool = False, depth: int | None = None) -> None:
+        t0 = time.perf_counter()
+        S = _bdiag(filt.matrices())
+        I3 = sp.identity(A.shape[0], format="csr")
+        As = [_canonical(S @ A @ S + (I3 - S))]
+        self.P: list = []
+        if two_grid:
+            depth = 1
+        for P in Ps if depth is None else Ps[:depth]:
+            P3 = sp.csr_array(sp.kron(P, sp.identity(3), format="csr"))
+            self.P.append(P3)
+            As.append(_canonical(P3.T @ As[-1] @ P3))
+        nnz0 = As[0].nnz
+        self.box = box
+        self.A = [Counted(Al, Al.nnz / nnz0, box) for Al in As]
+        self.Dblocks = [inv3(_diag_blocks(Al)) for Al in As[:-1]]
+        self.D = [_bdiag(B) for B in self.Dblocks]
+        #: the coarsest solve: dense Cholesky, or a sparse LU for the two-grid diagnostic (exact coarse solve)
+        if depth is not None:    # a sparse LU of the coarsest level; its two triangular solves counted as work
+            lu = spla.splu(sp.csc_matrix(As[-1]))
+            cw = (lu.L.nnz + lu.U.nnz) / nnz0
+            self.coarse_nnz_share = cw
+
+            def coarse(r, lu=lu, cw=cw):
+                box[0] += cw
+                return lu.solve(r)
+            self.coarse = coarse
+        else:
+            chol = sla.cho_factor(As[-1].toarray())
+            self.coarse = lambda r: sla.cho_solve(chol, r)
+        self.growth = growth
+        self.nu, self.cycle, self.smoother, self.degree, self.omega = nu, cycle, smoother, degree, omega
+        self.lmax: list[float] = []
+        self.setup_work = 0.0
+        if smoother == "chebyshev":
+            for Al, D in zip(self.A[:-1], self.D):
+                if safe:       # a guaranteed bound: the spectral radius is at most the row-sum norm of D^-1 A
+                    self.lmax.append(float(abs(D @ Al.A).sum(axis=1).max()))
+                    box[0] += Al.w
+                    continue
+                v = np.random.default_rng(0).standard_normal(Al.shape[0])
+                lam = 1.0
+                for _ in range(10):
+                    v = D @ (Al @ v)
+                    lam = float(np.linalg.norm(v))
+                    v /= lam
+                self.lmax.append(1.1 * lam)
+            self.setup_work, box[0] = box[0], 0.0
+        if smoother == "gs":      # per level and colour: its dof rows of A, its inverted diagonal blocks
+            self.colours = []
+            for Al, Db in zip(As[:-1], self.Dblocks):
+                c = greedy_colours(Al)
+                per = []
+                for k in range(int(c.max()) + 1):
+                    v = np.flatnonzero(c == k)
+                    dofs = (3 * v[:, None] + np.arange(3)).ravel()
+                    sel = sp.csr_array((np.ones(len(dofs)), (np.arange(len(dofs)), dofs)), shape=(len(dofs), Al.shape[0]))
+                    rows = sp.csr_array(sel @ Al)     # (fancy row indexing of these matrices crashed scipy 1.17)
+                    per.append((dofs, Counted(rows, rows.nnz / nnz0, box), _bdiag(Db[v])))
+                self.colours.append(per)
+        self.setup_s = time.perf_counter() - t0
+
+    def n_colours(self) -> list[int]:
+        return [len(c) for c in self.colours] if self.smoother == "gs" else []
+
+    def _smooth(self, l: int, b: np.ndarray, x: np.ndarray | None, backward: bool = False) -> np.ndarray:
+        """Smoothing sweeps on level ``l`` from ``x`` (``None``: zero, whose first product is skipped)."""
+        A, D = self.A[l], self.D[l]
+        if self.smoother == "jacobi":
+            for _ in range(self.nu * self.growth ** l):
+                x = self.omega * (D @ b) if x is None else x + self.omega * (D @ (b - A @ x))
+            return x
+        if self.smoother == "gs":
+            zero = x is None
+            x = np.zeros_like(b) if x is None else x.copy()
+            order = self.colours[l][::-1] if backward else self.colours[l]
+            for dofs, rows, Dc in order * self.growth ** l:
+                if zero:                            # x = 0 so far: no product needed
+                    x[dofs] = Dc @ b[dofs]
+                    zero = False
+                else:
+                    x[dofs] += Dc @ (b[dofs] - rows @ x)
+            return x
+        lmax = self.lmax[l]
+        lmin = lmax / 30.0
+        th, de = (lmax + lmin) / 2, (lmax - lmin) / 2
+        sig = th / de
+        rho = 1 / sig
+        d = (D @ (b if x is None else b - A @ x)) / th
+        x = np.zeros_like(b) if x is None else x
+        degree = self.degree * self.growth ** l
+        for j in range(degree):
+            x = x + d
+            if j == degree - 1:
+                break
+            rho_new = 1 / (2 * sig - rho)
+            d = rho_new * rho * d + 2 * rho_new / de * (D @ (b - A @ x))
+            rho = rho_new
+        return x
+
+    def _cycle(self, l: int, b: np.ndarray) -> np.ndarray:
+        if l == len(self.A) - 1:
+            return self.coarse(b)
+        x = self._smooth(l, b, None)
+        gamma = 2 if (self.cycle == "W" or (self.cycle == "Wc" and l > 0)) and l < len(self.A) - 2 else 1
+        for _ in range(gamma):
+            x = x + self.P[l] @ self._cycle(l + 1, self.P[l].T @ (b - self.A[l] @ x))
+        return self._smooth(l, b, x, backward=True)
+
+    def apply(self, r: np.ndarray) -> np.ndarray:
+        return self._cycle(0, r)
+
+
+def rigid_modes(x: np.ndarray) -> np.ndarray:
+    """The six rigid motions of the cloth at positions ``x`` (N, 3), columns of a (3N, 6) array."""
+    c = x - x.mean(axis=0)
+    B = np.zeros((3 * len(x), 6))
+    for a in range(3):
+        B[a::3, a] = 1.0
+    B[1::3, 3], B[2::3, 3] = -c[:, 2], c[:, 1]
+    B[0::3, 4], B[2::3, 4] = c[:, 2], -c[:, 0]
+    B[0::3, 5], B[1::3, 5] = -c[:, 1], c[:, 0]
+    return B
+
+
+class SmoothedAggregation:
+    """pyamg smoothed aggregation of ``S A S + (I - S)`` with the rigid motions as near-null space."""
+
+    def __init__(self, A, filt: Filter, x: np.ndarray, box: list) -> None:
+        import pyamg
+
+        S = _bdiag(filt.matrices())
+        K = sp.bsr_matrix(S @ A @ S + (sp.identity(A.shape[0], format="csr") - S), blocksize=(3, 3))
+        t0 = time.perf_counter()
+        state = np.random.get_state()  # noqa: NPY002 (pyamg reads the legacy global generator)
+        np.random.seed(0)  # noqa: NPY002
+        try:
+            self.ml = pyamg.smoothed_aggregation_solver(K, B=rigid_modes(x), max_coarse=100)
+        finally:
+            np.random.set_state(state)  # noqa: NPY002
+        self.setup_s = time.perf_counter() - t0
+        self.M = self.ml.aspreconditioner(cycle="V")
+        nnz = [lv.A.nnz for lv in self.ml.levels[:-1]]
+        #: per V-cycle: on each level a symmetric Gauss-Seidel sweep (2 passes) before and after, and a residual
+        self.per_apply = 5.0 * sum(m / nnz[0] for m in nnz)
+        self.box = box
+        self.setup_work = 0.0
+
+    def apply(self, r: np.ndarray) -> np.ndarray:
+        self.box[0] += self.per_apply
+        return np.asarray(self.M @ r)
+
+
+def direct(A, b: np.ndarray, z: np.ndarray, filt: Filter) -> np.ndarray:
+    """The exact filtered solution: ``(I - S) dv = (I - S) z``, ``S (A dv - b) = 0``."""
+    S = _bdiag(filt.matrices())
+    zc = z - filt.apply(z.copy())
+    K = sp.csc_matrix(S @ A @ S + (sp.identity(A.shape[0]) - S))
+    return zc + S @ spla.spsolve(K, S @ (b - A @ zc))
+
+
+def solve_variants(sysd: dict, variants: list[str], tol: float) -> list[dict]:
+    A, b, z, filt = sysd["A"], sysd["b"], sysd["z"], sysd["filt"]
+    Ps = grid_prolongations(*sysd["grid"])
+    t0 = time.perf_counter()
+    ref = direct(A, b, z, filt)
+    direct_s = time.perf_counter() - t0
+    rows = []
+    for name in variants:
+        box = [0.0]
+        try:
+            pc = (SmoothedAggregation(A, filt, sysd["x"], box) if name == "sa_rigid"
+                  else VCycle(A, filt, Ps, box, **VARIANTS[name]))
+            Ac = Counted(A, 1.0, box)
+            t1 = time.perf_counter()
+            dv, res = filtered_pcg(Ac, b, z, filt, pc, tol, 2000, mass=sysd["mass3"], compiled=False)
+            solve_s = time.perf_counter() - t1
+        except (ValueError, np.linalg.LinAlgError, sla.LinAlgError) as e:
+            print(f"{sysd['n']:4d}² step {sysd['step']:3d} {name:9s} failed: {type(e).__name__}: {e}", flush=True)
+            rows.append({"n": sysd["n"], "step": sysd["step"], "variant": name, "failed": f"{type(e).__name__}: {e}"})
+            continue
+        work = box[0]
+        rng = np.random.default_rng(1)       # is the preconditioner SPD on the free space? (r^T M r of filtered r)
+        rmr = min(float(r @ pc.apply(r)) / float(r @ r) for r in (filt.apply(rng.standard_normal(len(b)))
+                                                                    for _ in range(3)))
+        d3, z3 = dv.reshape(-1, 3), z.reshape(-1, 3)
+        exact = bool(np.array_equal(d3[filt.fixed], z3[filt.fixed]))
+        row = {"n": sysd["n"], "step": sysd["step"], "variant": name, "iterations": res.iterations,
+               "converged": res.converged, "true_error": float(np.linalg.norm(dv - ref) / np.linalg.norm(ref)),
+               "work": work, "work_per_iteration": work / max(res.iterations, 1), "min_rMr": rmr,
+               "setup_work": pc.setup_work, "setup_s": pc.setup_s, "solve_s": solve_s, "direct_s": direct_s,
+               "pins_exact": exact, "library_iterations": sysd["library_iterations"],
+               "colours": pc.n_colours() if isinstance(pc, VCycle) else []}
+        rows.append(row)
+        print(f"{sysd['n']:4d}² step {sysd['step']:3d} {name:9s} its {res.iterations:4d} (library V {sysd['library_iterations']})"
+              f"  true err {row['true_error']:.1e}{'' if rmr > 0 else ' (M INDEFINITE)'}  work {row['work']:6.1f} ({row['work_per_iteration']:.2f}/it"
+              f" + setup {pc.setup_work:.0f})  setup {1e3 * pc.setup_s:.0f} ms  solve {1e3 * solve_s:.0f} ms"
+              + (f"  colours {row['colours']}" if row["colours"] else ""), flush=True)
+    return rows
+
+
+# ----------------------------------------------------------------------------- report
+def summary(rows: list[dict], sizes: list[int]) -> list[dict]:
+    out = []
+    for v in dict.fromkeys(r["variant"] for r in rows):
+        rs = [r for r in rows if r["variant"] == v and not r.get("failed")]
+        per = {}
+        for n in sizes:
+            q = [r for r in rs if r["n"] == n]
+            if q:
+                per[n] = {"iterations": [r["iterations"] for r in q], "mean_iterations": statistics.mean(
+                    r["iterations"] for r in q), "work": statistics.mean(r["work"] + r["setup_work"] for r in q),
+                    "work_per_iteration": statistics.mean(r["work_per_iteration"] for r in q),
+                    "max_error": max(r["true_error"] for r in q),
+                    "setup_ms": 1e3 * statistics.median(r["setup_s"] for r in q),
+                    "ms_per_iteration": 1e3 * statistics.median(r["solve_s"] / max(r["iterations"], 1) for r in q),
+                    "converged": all(r["converged"] for r in q), "pins_exact": all(r["pins_exact"] for r in q)}
+        lo, hi = min(per, default=None), max(per, default=None)
+        ratio = per[hi]["mean_iterations"] / per[lo]["mean_iterations"] if per and hi != lo else None
+        out.append({"variant": v, "sizes": per, "ratio": ratio, "failed": len([r for r in rows if r["variant"] == v
+                                                                               and r.get("failed")])})
+    return out
+
+
+def markdown(res: dict) -> str:
+    sizes = res["sizes"]
+    lo, hi = min(sizes), max(sizes)
+    out = [f"Hanging stiff cloth k = {res['k']:g} N/m, dt = 1/60 s, fixed steps; systems of steps "
+           f"{', '.join(map(str, res['steps']))} at each size; filtered PCG (numpy), tolerance {res['tolerance']:g}, "
+           "the library's stopping rule.", "",
+           "Iterations: mean over the steps (each step's in brackets). Work: fine-level SpMV equivalents of the "
+           "whole solve (CG's products plus every level's matrix products in the preconditioner, at their share "
+           "of the fine level's entries; Chebyshev's power iterations included), mean over the steps. True error: "
+           "the largest over the steps, against a direct solve. Times: numpy on a shared machine, indication only.",
+           "", "| variant | " + " | ".join(f"its {n}²" for n in sizes) + f" | ratio {hi}²/{lo}² | "
+           + " | ".join(f"work {n}²" for n in sizes) + " | work/it | max true error | setup ms (largest) "
+           "| ms/it (largest) |", "|---|" + "---|" * (2 * len(sizes) + 5)]
+    for s in res["summary"]:
+        p = s["sizes"]
+        if not p:
+            out.append(f"| {s['variant']} | failed |")
+            continue
+        its = [f"{p[n]['mean_iterations']:.1f} ({'/'.join(map(str, p[n]['iterations']))})" if n in p else "-"
+               for n in sizes]
+        work = [f"{p[n]['work']:.0f}" if n in p else "-" for n in sizes]
+        big = p[max(p)]
+        err = max(q["max_error"] for q in p.values())
+        ratio = f"{s['ratio']:.2f}" if s["ratio"] is not None else "-"
+        out.append(f"| {s['variant']} | " + " | ".join(its) + f" | {ratio} | " + " | ".join(work)
+                   + f" | {big['work_per_iteration']:.2f} | {err:.1e} | {big['setup_ms']:.0f} | "
+                   f"{big['ms_per_iteration']:.0f} |")
+    out.append("")
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128, 256])
+    p.add_argument("--steps", type=int, nargs="+", default=[10, 30, 60])
+    p.add_argument("--k", type=float, default=1e4)
+    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    p.add_argument("--tolerance", type=float, default=None, help="default: the solver's default tolerance")
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--merge", nargs="+", default=[],
+                   help="mg_levers.json files of earlier runs (same steps and k) whose rows are merged, no new solves")
+    a = p.parse_args(argv)
+    if a.merge:
+        import json
+
+        runs = [json.loads(Path(f).read_text()) for f in a.merge]
+        rows = [r for run in runs for r in run["rows"]]
+        sizes = sorted({r["n"] for r in rows})
+        variants = list(dict.fromkeys(r["variant"] for r in rows))
+        res = {**runs[0], "sizes": sizes, "variants": variants, "rows": rows, "summary": summary(rows, sizes),
+               "merged_from": [str(f) for f in a.merge]}
+        md = markdown(res)
+        write_outputs(Path(a.out), "mg_levers", res, md)
+        print(md)
+        return 0
+    rows, tol = [], a.tolerance
+    for n in a.sizes:
+        t0 = time.perf_counter()
+        systems = capture(n, a.k, a.steps)
+        print(f"{n}²: captured steps {[s['step'] for s in systems]} in {time.perf_counter() - t0:.0f} s", flush=True)
+        for sysd in systems:
+            tol = sysd["tol"] if a.tolerance is None else a.tolerance
+            rows += solve_variants(sysd, a.variants, tol)
+    res = {"benchmark": "mg_levers", "sizes": a.sizes, "steps": a.steps, "k": a.k, "tolerance": tol,
+           "variants": a.variants, "rows": rows, "summary": summary(rows, a.sizes), "machine": machine()}
+    md = markdown(res)
+    write_outputs(Path(a.out), "mg_levers", res, md)
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
