@@ -472,3 +472,26 @@ def test_thread_setting_is_checked(monkeypatch):
         assert backend.threads() == 1
     finally:
         backend.set_threads(None)
+
+
+@pytest.mark.parametrize("sign", ["at once", "later"])
+def test_an_indefinite_preconditioner_is_a_breakdown_not_a_converged_solve(sign):
+    """CG needs a positive definite preconditioner; a negative ``r^T P^-1 r`` is a breakdown. It used to end the
+    solve as converged with error 0 (taken for round-off), a wrong answer reported as exact."""
+    rng = np.random.default_rng(0)
+    n = 12
+    B = rng.normal(size=(3 * n, 3 * n))
+    A = B @ B.T + 3 * n * np.eye(3 * n)
+    b = rng.normal(size=3 * n)
+    d = -np.ones(3 * n) if sign == "at once" else np.where(np.arange(3 * n) % 3 == 0, -1.0, 1.0)
+
+    class Bad:
+        compiled = False
+
+        def apply(self, r):
+            return d * r
+
+    dv, res = filtered_pcg(A, b, np.zeros(3 * n), Filter(n, np.zeros(0, dtype=np.int64)), Bad(), tol=1e-6,
+                           max_iterations=200, rule="bound", mass=np.ones(3 * n))
+    assert not res.converged
+    assert np.linalg.norm(dv - np.linalg.solve(A, b)) > 1e-3 * np.linalg.norm(np.linalg.solve(A, b))

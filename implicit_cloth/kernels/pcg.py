@@ -550,10 +550,10 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
     delta0 = delta
     ad = np.zeros(max_iterations)
     pw = np.zeros(max_iterations)
-    converged = delta <= 0.0
+    converged = delta <= 0.0 and not np.any(r != 0.0)    # an exact guess; else delta <= 0 is a breakdown
     error = 0.0 if converged else np.inf
     it = 0
-    while not converged and it < max_iterations:
+    while not converged and delta > 0.0 and it < max_iterations:
         # p is filtered, so S A S p + (I - S) p = S A p: the filtered product
         _fsymmv(adg, auI, auJ, auv, au6, use6, clist, Sc, ws, p, q, part)
         pq, pp = _dot2(p, q)
@@ -569,6 +569,8 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
            wb, wx, wr)
         filter_vec(clist, Sc, s)
         delta_new = _dot(r, s)
+        if delta_new < -1e-30 * delta0:     # breakdown: the preconditioner is not positive definite
+            break
         if delta_new <= 1e-30 * delta0:
             converged = True
             error = 0.0

@@ -241,10 +241,10 @@ def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: fl
     ad = np.zeros(max_iterations)                     # alpha_j delta_j
     pw = np.zeros(max_iterations)                     # |p_j|^2 / p_j^T A p_j
     inv_mass = None if mass is None else 1.0 / mass
-    converged = delta <= 0.0
+    converged = delta <= 0.0 and not np.any(r)       # an exact guess; else delta <= 0 is a breakdown
     error = 0.0 if converged else np.inf
     it = 0
-    while not converged and it < max_iterations:
+    while not converged and delta > 0.0 and it < max_iterations:
         q = filt.apply(A @ p)
         pq = float(p @ q)
         if pq <= 0.0:  # breakdown: A not SPD on the free subspace
@@ -257,6 +257,8 @@ def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: fl
         it += 1
         s = filt.apply(precond.apply(r))
         delta_new = float(r @ s)
+        if delta_new < -1e-30 * delta0:               # breakdown: the preconditioner is not positive definite
+            break
         if delta_new <= 1e-30 * delta0:
             converged, error = True, 0.0              # exact to round-off
         else:
