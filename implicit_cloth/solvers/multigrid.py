@@ -530,6 +530,15 @@ class _FusedHierarchy:
         self.filt: Filter | None = None
         self.version = -1
 
+    def __setstate__(self, state: dict) -> None:
+        """Unpickled: the fine level's arrays shared by CG and the V-cycle are views again (pickling copies
+        them apart, and the V-cycle would keep the fine values of the moment it was pickled)."""
+        self.__dict__.update(state)
+        n0, u0 = len(self.adg), len(self.auv)          # (the copies: their lengths are right)
+        if self.precond_dtype == np.float64:
+            self.adg, self.auv = self.dg[:n0], self.uv[:u0]
+        self.auI, self.auJ = self.uI[:u0], self.uJ[:u0]
+
     def _chunks(self, systems: list[SystemMatrix]) -> None:
         """Every level's chunks for the threaded passes (levels below THREAD_MIN_VERTICES stay serial)."""
         K = THREAD_CHUNKS + 1
