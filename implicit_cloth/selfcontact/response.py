@@ -370,7 +370,9 @@ class Response:
             toi.moved(np.any(vb != before, axis=1))
             x1 = x0 + h * vb
             pairs, s, _ = toi.update(pairs, x0, x1, inv)
-            hit = np.isfinite(s) & ~_within(label, rigid, pairs.idx)
+            hit = np.isfinite(s)
+            found = np.flatnonzero(hit)                 # (the few hits, not all the candidates)
+            hit[found[_within(label, rigid, pairs.idx[found])]] = False
             if not np.any(hit):
                 break
         info.unresolved = int(hit.sum())
