@@ -132,6 +132,8 @@ class Simulator:
         self.model.apply_pins(x, v, 0.0)
         self.state = State(x, v, 0.0)
         self._pins = Constraints.of_pins(self.model)
+        #: the last single linearisation without obstacles: (state, h, pins, end velocities), for its retry
+        self._linear: tuple[State, float, Constraints, np.ndarray] | None = None
         self.collider: Any = None
         if scene.data["obstacles"]:   # the collision code is imported only for obstacles
             from .collision import Collider
@@ -258,7 +260,7 @@ class Simulator:
         if col is not None and self.integrator.implicit:
             return col.step(self.integrator, state, h, pins, self.strain_limiter, newton)
         if isinstance(self.integrator, ImplicitIntegrator):
-            new, info = self.integrator.step(state, h, pins, newton=newton)
+            new, info = self._implicit_step(state, h, pins, newton)
         else:
             new, info = self.integrator.step(state, h)
         if self.strain_limiter is not None:
@@ -266,6 +268,26 @@ class Simulator:
         if col is not None and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
             # last, so that nothing after it moves the cloth into an obstacle; corrects new.x, new.v in place
             info.collision = col.respond(state, new, h)
+        return new, info
+
+    def _implicit_step(self, state: State, h: float, pins: Constraints, newton: int | None) -> tuple[State, Any]:
+        """The integrator's step without obstacles. A step redone with Newton iterations (adaptive stepping's
+        energy or strain retry) after its single linearisation from the same state, ``h`` and pins continues
+        from that linearisation's end velocities: the Newton iterations' first solve is that linearisation
+        (:meth:`~implicit_cloth.integrators.base.ImplicitIntegrator.step`), so solving it again would only
+        repeat it."""
+        integ = self.integrator
+        assert isinstance(integ, ImplicitIntegrator)
+        last = self._linear
+        self._linear = None
+        if (newton is not None and newton > 1 and last is not None and last[0] is state and last[1] == h
+                and last[2] is pins):
+            new, info = integ.step(state, h, pins, newton=newton - 1, start=last[3])
+            info.newton_iterations += 1
+            return new, info
+        new, info = integ.step(state, h, pins, newton=newton)
+        if newton is None and integ.newton_iterations == 1 and self.strain_limiter is None:
+            self._linear = (state, h, pins, new.v.copy())
         return new, info
 
     def _advance(self) -> Any:
