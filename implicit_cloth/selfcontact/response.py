@@ -73,15 +73,8 @@ class Pairs:
              inv: np.ndarray) -> "Pairs":
         """Vertex-triangle and edge-edge candidates of the motion ``x0 -> x1`` within ``reach``; pairs with no
         movable vertex are left out."""
-        v, f = broadphase.vertex_face_pairs(x0, x1, faces, reach)
-        a, b = broadphase.edge_edge_pairs(x0, x1, edges, reach)
-        idx = np.concatenate([np.column_stack([v, faces[f]]), np.column_stack([edges[a], edges[b]])])
-        vf = np.concatenate([np.ones(len(v), dtype=bool), np.zeros(len(a), dtype=bool)])
-        movable = np.any(inv[idx] > 0, axis=1)
-        idx, vf = idx[movable], vf[movable]
-        d0 = np.empty(len(idx))
-        for p in _pieces(len(idx)):
-            d0[p] = closest(x0, idx[p], vf[p])[2]
+        found = (broadphase.vertex_face_pairs(x0, x1, faces, reach), broadphase.edge_edge_pairs(x0, x1, edges, reach))
+        idx, vf, d0 = _movable_pairs(x0, faces, edges, inv, *found)
         return cls(idx, vf, x1.copy(), d0)
 
     def refresh(self, x0: np.ndarray, x1: np.ndarray, far: np.ndarray, faces: np.ndarray, edges: np.ndarray,
@@ -97,17 +90,26 @@ class Pairs:
         ref = self.x1.copy()
         ref[far] = x1[far]
         kept = np.flatnonzero(~np.any(far[self.idx], axis=1))
-        (v, f), (a, b) = broadphase.pairs_around(x0, ref, faces, edges, reach, far)
-        idx = np.concatenate([np.column_stack([v, faces[f]]), np.column_stack([edges[a], edges[b]])])
-        vf = np.concatenate([np.ones(len(v), dtype=bool), np.zeros(len(a), dtype=bool)])
-        movable = np.any(inv[idx] > 0, axis=1)
-        idx, vf = idx[movable], vf[movable]
-        d0 = np.empty(len(idx))
-        for p in _pieces(len(idx)):
-            d0[p] = closest(x0, idx[p], vf[p])[2]
+        idx, vf, d0 = _movable_pairs(x0, faces, edges, inv, *broadphase.pairs_around(x0, ref, faces, edges, reach, far))
         new = Pairs(np.concatenate([self.idx[kept], idx]), np.concatenate([self.vf[kept], vf]), ref,
                     np.concatenate([self.d0[kept], d0]))
         return new, kept
+
+
+def _movable_pairs(x0: np.ndarray, faces: np.ndarray, edges: np.ndarray, inv: np.ndarray,
+                   vf_pairs: tuple[np.ndarray, np.ndarray], ee_pairs: tuple[np.ndarray, np.ndarray]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The broad phase's (vertex, face) and (edge, edge) pairs as ``idx``, ``vf`` (:class:`Pairs`) and their
+    distances at ``x0``, leaving out the pairs with no movable vertex."""
+    (v, f), (a, b) = vf_pairs, ee_pairs
+    idx = np.concatenate([np.column_stack([v, faces[f]]), np.column_stack([edges[a], edges[b]])])
+    vf = np.concatenate([np.ones(len(v), dtype=bool), np.zeros(len(a), dtype=bool)])
+    movable = np.any(inv[idx] > 0, axis=1)
+    idx, vf = idx[movable], vf[movable]
+    d0 = np.empty(len(idx))
+    for p in _pieces(len(idx)):
+        d0[p] = closest(x0, idx[p], vf[p])[2]
+    return idx, vf, d0
 
 
 def _pieces(k: int) -> list[slice]:
@@ -457,16 +459,13 @@ class _Impacts:
         if self.changed is None or (fresh is not self.pairs and kept is None):
             self.s, self.n = impacts(x0, x1, fresh.idx, fresh.vf, self.r.tol, fresh.d0)
         else:
+            test = np.any(self.changed[fresh.idx], axis=1)
             if fresh is not self.pairs:         # kept pairs first, their times as they were; the new ones tested
-                assert self.pairs is not None and kept is not None
+                assert kept is not None
                 s, n = np.full(fresh.count, np.inf), np.zeros((fresh.count, 3))
                 s[:len(kept)], n[:len(kept)] = self.s[kept], self.n[kept]
                 self.s, self.n = s, n
-                test = np.zeros(fresh.count, dtype=bool)
                 test[len(kept):] = True
-            else:
-                test = np.zeros(fresh.count, dtype=bool)
-            test |= np.any(self.changed[fresh.idx], axis=1)
             sel = np.flatnonzero(test)
             if len(sel):
                 self.s[sel], self.n[sel] = impacts(x0, x1, fresh.idx[sel], fresh.vf[sel], self.r.tol, fresh.d0[sel])
