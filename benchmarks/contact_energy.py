@@ -23,7 +23,10 @@ edge-first on the floor plane, and the same sphere and box as triangle meshes
   obstacle, the cloth's centroid less than 0.6 m below its top, and an rms vertex
   speed below 1 cm/s), ``still moving`` (on it, but faster), ``slid off`` (not on
   it: fallen past it); ``at rest from``: the time of the last kept frame with an
-  rms speed of 1 cm/s or more (resting rows);
+  rms speed of 1 cm/s or more (resting rows). A row still moving is run again at
+  a quarter of its step (``--finer``): if that run is at rest, the large step
+  kept the cloth moving; if it moves as much, the motion is the scene's (a skirt
+  swinging with this scene's light damping);
 * ``substeps/frame`` (adaptive stepping: accepted substeps per kept frame) and
   ``ms/frame`` (wall time; the machine is shared, so read it as a ratio).
 
@@ -229,15 +232,38 @@ def run_row(spec: dict) -> dict:
         row["end_gap"], row["end_centroid_z"] = gap, float(x[:, 2].mean())
         row["end"] = "slid off" if not on else "resting on it" if vrms < REST_SPEED else "still moving"
         row["rest_from"] = seen["moving_at"] if vrms < REST_SPEED else None    # s: at rest from this frame on
+        if row["end"] == "still moving" and spec.get("reference"):
+            row.update(finer(spec, folder))
     else:
         row["end"] = "-"
         row["max_stretch"] = 1.0 + seen["strain"]
     return row
 
 
+def finer(spec: dict, folder: Path) -> dict:
+    """A row still moving at the end, run again at ``dt / spec["reference"]``: is its motion the scene's (the
+    finer step moves as much) or the large step's (the finer step is at rest)? Less numerical damping at a
+    smaller step can only leave more of a physical motion, so a finer run at rest says the large step kept
+    the cloth moving."""
+    k = int(spec["reference"])
+    scene = {**spec["scene"], "simulation": {**spec["scene"]["simulation"], "dt": spec["dt"] / k}}
+    sim = ic.Simulator(ic.Scene.from_dict(scene, base_dir=folder))
+    seen = {"moving_at": 0.0}
+
+    def on_frame(state) -> None:
+        if float(np.sqrt(np.mean(np.einsum("ij,ij->i", state.v, state.v)))) >= REST_SPEED:
+            seen["moving_at"] = float(state.t)
+
+    sim.run(on_frame=on_frame)
+    v = sim.velocities
+    vrms = float(np.sqrt(np.mean(np.einsum("ij,ij->i", v, v))))
+    return {"finer_dt": spec["dt"] / k, "finer_vrms_end": vrms,
+            "finer_rest_from": seen["moving_at"] if vrms < REST_SPEED else None}
+
+
 def specs(args: argparse.Namespace, mesh_dir: Path) -> list[dict]:
     out = []
-    base = {"mesh_dir": str(mesh_dir), "material": None, "speed": None}
+    base = {"mesh_dir": str(mesh_dir), "material": None, "speed": None, "reference": args.finer}
     for shape in args.shapes:
         for n in args.sizes:
             for fps in args.dts:
@@ -264,6 +290,7 @@ def markdown(res: dict) -> str:
              f"(goal <= {100 * RISE_GOAL:g} %).", ""]
     lines += ["| group | shape | grid | dt | material | rise | max strain | end | at rest from | substeps/frame | "
               "ms/frame | report |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    still = []
     for r in res["rows"]:
         if r["group"] == "moving":
             continue
@@ -272,6 +299,14 @@ def markdown(res: dict) -> str:
                      f"{100 * r['rise_frac']:.2f} %{ok} | {r['max_strain']:.3f} | {r['end']} | "
                      f"{'-' if r.get('rest_from') is None else format(r['rest_from'], '.2f') + ' s'} | "
                      f"{r['substeps_per_frame']:.2f} | {r['ms_per_frame']:.0f} | {r['report_status']} |")
+        if r.get("finer_dt"):
+            still.append(f"{r['shape']} {r['n']}² at dt 1/{round(1 / r['dt'])}: "
+                         f"{100 * r['vrms_end']:.2f} cm/s rms at the end; at dt 1/{round(1 / r['finer_dt'])} "
+                         + (f"at rest from {r['finer_rest_from']:.2f} s (the large step keeps it moving)"
+                            if r.get("finer_rest_from") is not None else
+                            f"{100 * r['finer_vrms_end']:.2f} cm/s (the scene's own motion)"))
+    if still:
+        lines += ["", "Rows still moving, run again at a finer step (`--finer`): " + "; ".join(still) + "."]
     mov = [r for r in res["rows"] if r["group"] == "moving"]
     if mov:
         lines += ["", f"Moving sphere (r = 0.15 m) through a cloth hanging from two corners, dt 1/30 s, "
@@ -341,12 +376,17 @@ def plot(res: dict, path: Path) -> None:
 
 
 def merge(paths: list[Path], out: Path) -> int:
-    """Combine partial runs (say, one size per run, as the machine allows) into one result, rows in table order."""
+    """Combine partial runs (say, one size per run, as the machine allows) into one result, rows in table order; a
+    row in several parts is taken from the last."""
     import json
 
     parts = [json.loads(Path(p).read_text()) for p in paths]
     order = {"static": 0, "material": 1, "moving": 2}
-    rows = sorted((r for part in parts for r in part["rows"]),
+    latest = {}                 # a row run again in a later part replaces the earlier one
+    for part in parts:
+        for r in part["rows"]:
+            latest[(r["group"], r["shape"], r["n"], r["dt"], r["material"], r["speed"], r.get("limit") or 0.0)] = r
+    rows = sorted(latest.values(),
                   key=lambda r: (order[r["group"]], r["material"] or "", list(SHAPES).index(r["shape"]),
                                  r.get("limit") or 0.0, r["speed"] or 0.0, r["n"], -r["dt"]))
     res = {**parts[0], "rows": rows, "wall_s": sum(p["wall_s"] for p in parts),
@@ -373,6 +413,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--moving-duration", type=float, default=1.0, help="moving rows, s")
     p.add_argument("--moving-limits", nargs="*", type=float, default=list(MOVING_LIMITS),
                    help="moving rows: strain limits to run (0: none)")
+    p.add_argument("--finer", type=int, default=4, metavar="K",
+                   help="static rows still moving at the end are run again at dt / K (0: not)")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     p.add_argument("--merge", nargs="+", type=Path, metavar="JSON",

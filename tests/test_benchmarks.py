@@ -74,8 +74,22 @@ def test_contact_energy_quick_via_cli(tmp_path):
             assert r["end"] in ("resting on it", "still moving", "slid off")
         else:
             assert r["max_stretch"] >= 1.0
+    # a row still moving after its 1 s is run again at a quarter of its step, and the table says what that gave
+    still = [r for r in res["rows"] if r["group"] == "static" and r["end"] == "still moving"]
+    assert still and all(r["finer_dt"] == r["dt"] / 4 and r["finer_vrms_end"] >= 0 for r in still)
+    assert all("finer_dt" not in r for r in res["rows"] if r not in still)
     md = (tmp_path / "contact_energy.md").read_text()
-    assert "| static | sphere | 12² |" in md and "Moving sphere" in md
+    assert "| static | sphere | 12² |" in md and "Moving sphere" in md and "run again at a finer step" in md
+    # merging parts: a row run again in a later part replaces the earlier one
+    again = dict(res, rows=[dict(still[0], ms_per_frame=-1.0)])
+    (tmp_path / "again.json").write_text(json.dumps(again))
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import contact_energy
+
+    contact_energy.merge([tmp_path / "contact_energy.json", tmp_path / "again.json"], tmp_path / "merged")
+    merged = json.loads((tmp_path / "merged" / "contact_energy.json").read_text())
+    assert len(merged["rows"]) == len(res["rows"])
+    assert sum(r["ms_per_frame"] == -1.0 for r in merged["rows"]) == 1
     png = (tmp_path / "contact_energy.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
 
