@@ -415,12 +415,27 @@ def _extras(a, rows: list[dict], accelerators: list[str], exponents: dict) -> tu
             threads.append(th)
             print(f"k={a.ks[0]:g} {n}² threads {a.threads}: {th['ms_step']} ms/step, speed-up {th['speedup']:.2f}x, "
                   f"identical {th['identical']}", flush=True)
-    blender = []
-    if a.blender and Path(a.blender).is_file():
-        vb = json.loads(Path(a.blender).read_text())
-        blender = [{"vertices": r["n"] ** 2, "ms_frame": r["blender_ms"], "ours_ms_frame": r["ours_ms"]}
-                   for r in vb["rows"] if r["scene"] == "hanging"]
-    return big, threads, blender
+    return big, threads, blender_points(a.blender)
+
+
+def blender_points(path: str | None) -> list[dict]:
+    """Blender's and our ms per frame on the shared hanging scene, from a ``vs_blender.py`` result (if any)."""
+    if not path or not Path(path).is_file():
+        return []
+    vb = json.loads(Path(path).read_text())
+    return [{"vertices": r["n"] ** 2, "ms_frame": r["blender_ms"], "ours_ms_frame": r["ours_ms"]}
+            for r in vb["rows"] if r["scene"] == "hanging"]
+
+
+def replot(path: Path, out: Path, blender: str | None) -> int:
+    """Draw an earlier result's table and plot again, with Blender's points from ``blender`` (nothing is run)."""
+    res = json.loads(path.read_text())
+    res["blender"] = blender_points(blender)
+    md = markdown(res)
+    write_outputs(out, path.stem, res, md)
+    plot(res, out / f"{path.stem}.png")
+    print(md)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -462,10 +477,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="address-space limit of each --big-sizes process (a shared machine), GB")
     p.add_argument("--blender", default=str(ROOT / "benchmarks" / "results" / "vs_blender.json"),
                    help="vs_blender.py's JSON, whose hanging rows are drawn in the plot (if the file exists)")
+    p.add_argument("--replot", type=Path, metavar="JSON",
+                   help="run nothing: draw this earlier result's table and plot again (Blender's points from "
+                        "--blender) into --out, under the JSON's name")
     p.add_argument("--big-worker", type=int, default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     global ADAPTIVE
     ADAPTIVE = a.adaptive
+    if a.replot:
+        return replot(a.replot, Path(a.out), a.blender)
     if a.big_worker is not None:
         print("RESULT " + json.dumps(big_worker(a.big_worker, a.ks[0], a.steps, a.warmup, a.big_memory_gb)))
         return 0
