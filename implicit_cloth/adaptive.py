@@ -128,8 +128,6 @@ class StepController:
         self.level = 0
         self._streak = 0
         self.suspended: set[str] = set()
-        #: the criteria the single linearisation of the step being redone with Newton iterations failed
-        self.redo_for: frozenset[str] = frozenset()
         self.stats = AdaptiveStats()
         #: smallest accepted step since the caller last reset it to inf, s (per-frame reports)
         self.window_min_step = math.inf
@@ -200,7 +198,6 @@ class StepController:
             if active:
                 if nonlinear:                              # the same step, solved nonlinearly
                     self.stats.newton_retries += 1
-                    self.redo_for = frozenset(active)
                     newton = self.newton_iterations
                     continue
                 if self.level < self.max_halvings:

@@ -280,32 +280,15 @@ class Simulator:
         assert isinstance(integ, ImplicitIntegrator)
         last = self._linear
         self._linear = None
-        enough = self._enough(state, h) if newton is not None else None
         if (newton is not None and newton > 1 and last is not None and last[0] is state and last[1] == h
                 and last[2] is pins):
-            new, info = integ.step(state, h, pins, newton=newton - 1, start=last[3], enough=enough)
+            new, info = integ.step(state, h, pins, newton=newton - 1, start=last[3])
             info.newton_iterations += 1
             return new, info
-        new, info = integ.step(state, h, pins, newton=newton, enough=enough)
+        new, info = integ.step(state, h, pins, newton=newton)
         if newton is None and integ.newton_iterations == 1 and self.strain_limiter is None:
             self._linear = (state, h, pins, new.v.copy())
         return new, info
-
-    def _enough(self, state: State, h: float) -> Callable[[State, Any], bool] | None:
-        """For a step adaptive stepping redoes with Newton iterations because its single linearisation broke the
-        energy balance: the test that stops them at the first iterate its criteria pass, as the single
-        linearisation would have been accepted, so a redo costs the iterations the balance needs, not those
-        of a converged solve. A redo for the strain bound converges (a cloth stretched past the bound left
-        at the first iterate within it went on to break it at the smallest step: a cloth whose vertices all
-        start at one point, tests/test_hard_cases.py)."""
-        ad = self.adaptive
-        if ad is None or ad.redo_for != {"energy"}:
-            return None
-
-        def enough(end: State, info: Any) -> bool:
-            return not (set(ad.check(state, end, info, h)) - ad.suspended)
-
-        return enough
 
     def _advance(self) -> Any:
         with np.errstate(over="ignore", invalid="ignore"):   # a blow-up is reported below, not warned

@@ -221,8 +221,7 @@ def test_a_newton_redo_continues_from_the_linearisation_it_redoes(monkeypatch, i
     for mode in ("continue", "solve again"):
         if mode == "solve again":
             def again(self, state, h, pins, newton):
-                return self.integrator.step(state, h, pins, newton=newton,
-                                            enough=self._enough(state, h) if newton is not None else None)
+                return self.integrator.step(state, h, pins, newton=newton)
 
             monkeypatch.setattr(ic.Simulator, "_implicit_step", again)
         traj = _perturbed(_flat(1e5, integrator)).run(frame_rate=240)
@@ -235,35 +234,3 @@ def test_a_newton_redo_continues_from_the_linearisation_it_redoes(monkeypatch, i
     assert a["solver"]["mean_solves"] * steps == b["solver"]["mean_solves"] * steps - retries
     assert a["solver"]["mean_iterations"] < b["solver"]["mean_iterations"]
     assert a["solver"]["max_newton_iterations"] == b["solver"]["max_newton_iterations"]
-
-
-@pytest.mark.parametrize("integrator", ["backward_euler", "bdf2"])
-def test_a_newton_redo_for_the_energy_balance_stops_once_it_holds(monkeypatch, integrator):
-    """A step redone with Newton iterations because its single linearisation broke the energy balance is
-    accepted at the first iterate that meets the balance (the test the single linearisation failed), not
-    at a converged solve: the stiff flat cloth (k = 1e5 at dt 1/15, every step redone) takes a quarter of
-    the solves, and its energy, judged here from the states (kinetic + gravity + springs; the pins do not
-    move, so nothing does work), falls at every step as with converged redos."""
-    runs = {}
-    for mode in ("stop", "converge"):
-        if mode == "converge":
-            monkeypatch.setattr(ic.Simulator, "_enough", lambda self, state, h: None)
-        sim = _perturbed(_flat(1e5, integrator))
-        s, m = sim.model.springs, sim.model.masses
-        L0 = s.lengths(sim.positions)
-        energy = []
-
-        def on_frame(st, s=s, m=m, L0=L0, energy=energy):
-            ext = s.lengths(st.x) - L0
-            energy.append(0.5 * np.dot(m, np.einsum("ij,ij->i", st.v, st.v)) + 9.81 * np.dot(m, st.x[:, 2])
-                          + 0.5 * np.dot(s.k, ext * ext))
-
-        rep = sim.run(frame_rate=15, on_frame=on_frame).report
-        runs[mode] = (np.array(energy), rep)
-    (e_stop, a), (e_conv, b) = runs["stop"], runs["converge"]
-    assert a["steps"] == b["steps"] == len(e_stop) - 1
-    assert a["adaptive"]["newton_retries"] == a["steps"] and a["adaptive"]["retries"] == 0
-    assert a["solver"]["mean_solves"] < 0.3 * b["solver"]["mean_solves"]
-    for e in (e_stop, e_conv):
-        assert np.all(np.diff(e) < 0)
-    assert a["status"] == b["status"] == "ok"

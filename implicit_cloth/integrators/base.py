@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -178,16 +178,14 @@ class ImplicitIntegrator(Integrator):
 
     def step(self, state: State, h: float, constraints: Constraints | None = None,
              guess: np.ndarray | None = None, newton: int | None = None,
-             start: np.ndarray | None = None,
-             enough: Callable[[State, StepInfo], bool] | None = None) -> tuple[State, StepInfo]:
+             start: np.ndarray | None = None) -> tuple[State, StepInfo]:
         """One step under ``constraints`` (the model's pins when None).
 
         ``guess`` warm-starts the first solve's free part; ``newton`` (default ``solver.newton_iterations``)
         is the most Newton iterations: 1 is Baraff & Witkin's single linearisation, more continue with
         :meth:`_newton` from its result. ``start``: end velocities (N, 3) of an earlier attempt at this step
         to continue from with ``newton`` Newton iterations instead (their constrained components are first
-        set to what ``constraints`` prescribe). ``enough(end, info)``: the Newton iterations also stop at the
-        first iterate whose end state it accepts (adaptive stepping's criteria).
+        set to what ``constraints`` prescribe).
         """
         c = self._pins if constraints is None else constraints
         info = StepInfo(newton_iterations=1)
@@ -209,10 +207,10 @@ class ImplicitIntegrator(Integrator):
             # the constrained components of v0 + z, the free ones of the earlier attempt
             v1 = v + z + filt.apply((start - v - z).reshape(-1)).reshape(-1, 3)
             info.newton_iterations = 0
-            return self._newton(state, h, c, scheme, v1, filt, max(iters, 1), info, enough)
+            return self._newton(state, h, c, scheme, v1, filt, max(iters, 1), info)
         dv = self._solve(A, b, z, filt, info, guess)
         if iters > 1 and np.all(np.isfinite(dv)):
-            return self._newton(state, h, c, scheme, v + dv, filt, iters - 1, info, enough)
+            return self._newton(state, h, c, scheme, v + dv, filt, iters - 1, info)
         v1 = v + dv
         x1 = scheme.x_pred + scheme.beta * v1
         if c.n_contacts:   # A dv - b = c_v F_c: the constraint force F_c over the step h is the impulse
@@ -253,8 +251,7 @@ class ImplicitIntegrator(Integrator):
         return float(sum(self.model.potential_energy(x).values()))
 
     def _newton(self, state: State, h: float, c: Constraints, scheme: Scheme, v: np.ndarray, filt: Filter,
-                iterations: int, info: StepInfo,
-                enough: Callable[[State, StepInfo], bool] | None = None) -> tuple[State, StepInfo]:
+                iterations: int, info: StepInfo) -> tuple[State, StepInfo]:
         """Continue the step by Newton iterations with a line search on the incremental potential.
 
         The step's nonlinear equation ``R(v) = M (v - v_hat) - c_v F(x(v), v) = 0``, ``x(v) = x_pred + c_v v``,
@@ -268,10 +265,8 @@ class ImplicitIntegrator(Integrator):
         PCG and constraints, constrained components 0: every iterate meets the constraints the first solve met)
         and backtracks
         ``v_k + a d`` from ``a = 1`` until ``Phi`` decreases enough (Armijo, ``1e-4``), so no iteration can
-        raise it. Stops when ``|a d| <= tolerance |v - v0|``, after ``iterations``, when the line search
-        fails (the iterate is kept), or at the first iterate ``enough`` accepts (when given: the state the
-        caller's criteria pass; the single linearisation is accepted by the same test). Returns the step's
-        state and figures.
+        raise it. Stops when ``|a d| <= tolerance |v - v0|``, after ``iterations``, or when the line search
+        fails (the iterate is kept). Returns the step's state and figures.
         """
         M = self.model.masses[:, None]
         t1 = state.t + h
@@ -310,9 +305,6 @@ class ImplicitIntegrator(Integrator):
             if a * np.sqrt(dMd) <= NEWTON_TOLERANCE * np.sqrt(float(np.einsum("ij,ij->", M * (v - state.v),
                                                                                   v - state.v))):
                 break
-            if enough is not None:
-                if enough(self._finish(scheme.x_pred + scheme.beta * v, v.copy(), t1), info):
-                    break
         if c.n_contacts:   # the constraint force at the last iterate: F_c = (M (v - v_hat) - c_v F) / c_v
             x = scheme.x_pred + cv * v
             Rc = M * (v - scheme.v_hat) - cv * self._forces(x, v, t1, c)
