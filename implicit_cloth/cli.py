@@ -262,8 +262,8 @@ def _section_lines(r: RunReport) -> list[str]:
     if s:
         lines.append(
             f"solver       {s.preconditioner} PCG ({s.accelerator}), iterations mean {s.mean_iterations:.1f} / "
-            f"max {s.max_iterations}, max residual {s.max_residual:.3g} (tolerance {s.tolerance:g}), "
-            f"unconverged steps {s.unconverged_steps}")
+            f"max {s.max_iterations}, tolerance {s.tolerance:g} on the error of dv (max relative residual "
+            f"{s.max_residual:.3g}), unconverged steps {s.unconverged_steps}")
     a = r.adaptive
     if a:
         lines.append(f"adaptive     {a.substeps} substeps, {a.retries} retries (halved), {a.newton_retries} redone "
