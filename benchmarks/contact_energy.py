@@ -192,6 +192,11 @@ def _sample_distance(sim: ic.Simulator, x: np.ndarray) -> np.ndarray:
     return d
 
 
+def rms_speed(v: np.ndarray) -> float:
+    """Root-mean-square vertex speed, m/s."""
+    return float(np.sqrt(np.mean(np.einsum("ij,ij->i", v, v))))
+
+
 def run_row(spec: dict) -> dict:
     """Simulate one row's scene, judging every kept frame (60 Hz) from its state."""
     folder = Path(spec.get("mesh_dir") or ".")
@@ -204,7 +209,7 @@ def run_row(spec: dict) -> dict:
         e, s = judge(state.x, state.v)
         seen["rise"], seen["strain"] = max(seen["rise"], e - e0), max(seen["strain"], s)
         seen["frames"] += 1
-        if float(np.sqrt(np.mean(np.einsum("ij,ij->i", state.v, state.v)))) >= REST_SPEED:
+        if rms_speed(state.v) >= REST_SPEED:
             seen["moving_at"] = float(state.t)      # the last kept frame faster than REST_SPEED (rms)
 
     t0 = time.perf_counter()
@@ -232,7 +237,7 @@ def run_row(spec: dict) -> dict:
         row["end_gap"], row["end_centroid_z"] = gap, float(x[:, 2].mean())
         row["end"] = "slid off" if not on else "resting on it" if vrms < REST_SPEED else "still moving"
         row["rest_from"] = seen["moving_at"] if vrms < REST_SPEED else None    # s: at rest from this frame on
-        if row["end"] == "still moving" and spec.get("reference"):
+        if row["end"] == "still moving" and spec.get("finer"):
             row.update(finer(spec, folder))
     else:
         row["end"] = "-"
@@ -241,29 +246,28 @@ def run_row(spec: dict) -> dict:
 
 
 def finer(spec: dict, folder: Path) -> dict:
-    """A row still moving at the end, run again at ``dt / spec["reference"]``: is its motion the scene's (the
+    """A row still moving at the end, run again at ``dt / spec["finer"]``: is its motion the scene's (the
     finer step moves as much) or the large step's (the finer step is at rest)? Less numerical damping at a
     smaller step can only leave more of a physical motion, so a finer run at rest says the large step kept
     the cloth moving."""
-    k = int(spec["reference"])
+    k = int(spec["finer"])
     scene = {**spec["scene"], "simulation": {**spec["scene"]["simulation"], "dt": spec["dt"] / k}}
     sim = ic.Simulator(ic.Scene.from_dict(scene, base_dir=folder))
     seen = {"moving_at": 0.0}
 
     def on_frame(state) -> None:
-        if float(np.sqrt(np.mean(np.einsum("ij,ij->i", state.v, state.v)))) >= REST_SPEED:
+        if rms_speed(state.v) >= REST_SPEED:
             seen["moving_at"] = float(state.t)
 
     sim.run(on_frame=on_frame)
-    v = sim.velocities
-    vrms = float(np.sqrt(np.mean(np.einsum("ij,ij->i", v, v))))
+    vrms = rms_speed(sim.velocities)
     return {"finer_dt": spec["dt"] / k, "finer_vrms_end": vrms,
             "finer_rest_from": seen["moving_at"] if vrms < REST_SPEED else None}
 
 
 def specs(args: argparse.Namespace, mesh_dir: Path) -> list[dict]:
     out = []
-    base = {"mesh_dir": str(mesh_dir), "material": None, "speed": None, "reference": args.finer}
+    base = {"mesh_dir": str(mesh_dir), "material": None, "speed": None, "finer": args.finer}
     for shape in args.shapes:
         for n in args.sizes:
             for fps in args.dts:

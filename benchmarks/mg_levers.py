@@ -53,6 +53,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from _common import ROOT, hanging_stiff, ic, machine, write_outputs
+from solver_choice import _bdiag, _diag_blocks, chebyshev, direct, power_bound, rigid_modes
 
 from implicit_cloth.solvers import make_preconditioner
 from implicit_cloth.solvers.blocks import inv3
@@ -125,11 +126,6 @@ class Counted:
         return self.A @ x
 
 
-def _bdiag(B: np.ndarray) -> sp.csr_array:
-    n = len(B)
-    return sp.csr_array(sp.bsr_matrix((B, np.arange(n), np.arange(n + 1)), shape=(3 * n, 3 * n)).tocsr())
-
-
 def _canonical(A) -> sp.csr_array:
     """A CSR copy with sorted, summed indices and int64 index arrays."""
     A = sp.csr_array(A, copy=True)
@@ -137,13 +133,6 @@ def _canonical(A) -> sp.csr_array:
     A.sort_indices()
     A.indptr, A.indices = A.indptr.astype(np.int64), A.indices.astype(np.int64)
     return A
-
-
-def _diag_blocks(A) -> np.ndarray:
-    A = sp.csr_array(A)
-    n = A.shape[0] // 3
-    i = np.arange(n) * 3
-    return np.stack([np.stack([A[i + a, i + b] for b in range(3)], -1) for a in range(3)], -2)
 
 
 def greedy_colours(A) -> np.ndarray:
@@ -210,13 +199,7 @@ class VCycle:
                     self.lmax.append(float(abs(D @ Al.A).sum(axis=1).max()))
                     box[0] += Al.w
                     continue
-                v = np.random.default_rng(0).standard_normal(Al.shape[0])
-                lam = 1.0
-                for _ in range(10):
-                    v = D @ (Al @ v)
-                    lam = float(np.linalg.norm(v))
-                    v /= lam
-                self.lmax.append(1.1 * lam)
+                self.lmax.append(power_bound(Al, D, 10))
             self.setup_work, box[0] = box[0], 0.0
         if smoother == "gs":      # per level and colour: its dof rows of A, its inverted diagonal blocks
             self.colours = []
@@ -253,22 +236,7 @@ class VCycle:
                 else:
                     x[dofs] += Dc @ (b[dofs] - rows @ x)
             return x
-        lmax = self.lmax[l]
-        lmin = lmax / 30.0
-        th, de = (lmax + lmin) / 2, (lmax - lmin) / 2
-        sig = th / de
-        rho = 1 / sig
-        d = (D @ (b if x is None else b - A @ x)) / th
-        x = np.zeros_like(b) if x is None else x
-        degree = self.degree * self.growth ** l
-        for j in range(degree):
-            x = x + d
-            if j == degree - 1:
-                break
-            rho_new = 1 / (2 * sig - rho)
-            d = rho_new * rho * d + 2 * rho_new / de * (D @ (b - A @ x))
-            rho = rho_new
-        return x
+        return chebyshev(A, D, b, x, self.lmax[l], self.degree * self.growth ** l)
 
     def _cycle(self, l: int, b: np.ndarray) -> np.ndarray:
         if l == len(self.A) - 1:
@@ -281,18 +249,6 @@ class VCycle:
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         return self._cycle(0, r)
-
-
-def rigid_modes(x: np.ndarray) -> np.ndarray:
-    """The six rigid motions of the cloth at positions ``x`` (N, 3), columns of a (3N, 6) array."""
-    c = x - x.mean(axis=0)
-    B = np.zeros((3 * len(x), 6))
-    for a in range(3):
-        B[a::3, a] = 1.0
-    B[1::3, 3], B[2::3, 3] = -c[:, 2], c[:, 1]
-    B[0::3, 4], B[2::3, 4] = c[:, 2], -c[:, 0]
-    B[0::3, 5], B[1::3, 5] = -c[:, 1], c[:, 0]
-    return B
 
 
 class SmoothedAggregation:
@@ -321,14 +277,6 @@ class SmoothedAggregation:
     def apply(self, r: np.ndarray) -> np.ndarray:
         self.box[0] += self.per_apply
         return np.asarray(self.M @ r)
-
-
-def direct(A, b: np.ndarray, z: np.ndarray, filt: Filter) -> np.ndarray:
-    """The exact filtered solution: ``(I - S) dv = (I - S) z``, ``S (A dv - b) = 0``."""
-    S = _bdiag(filt.matrices())
-    zc = z - filt.apply(z.copy())
-    K = sp.csc_matrix(S @ A @ S + (sp.identity(A.shape[0]) - S))
-    return zc + S @ spla.spsolve(K, S @ (b - A @ zc))
 
 
 def solve_variants(sysd: dict, variants: list[str], tol: float) -> list[dict]:

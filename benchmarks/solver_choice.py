@@ -87,9 +87,40 @@ def _bdiag(B: np.ndarray) -> sp.csr_array:
 
 
 def _diag_blocks(A) -> np.ndarray:
+    A = sp.csr_array(A)
     n = A.shape[0] // 3
     i = np.arange(n) * 3
     return np.stack([np.stack([A[i + a, i + b] for b in range(3)], -1) for a in range(3)], -2)
+
+
+def power_bound(A, D, iterations: int) -> float:
+    """1.1 times a power-iteration estimate of the largest eigenvalue of ``D A`` (from a fixed random start)."""
+    v = np.random.default_rng(0).standard_normal(A.shape[0])
+    lam = 1.0
+    for _ in range(iterations):
+        v = D @ (A @ v)
+        lam = float(np.linalg.norm(v))
+        v /= lam
+    return 1.1 * lam
+
+
+def chebyshev(A, D, b: np.ndarray, x: np.ndarray | None, lmax: float, degree: int) -> np.ndarray:
+    """``degree`` steps of the Chebyshev iteration for ``A x = b`` preconditioned by ``D``, on the interval
+    ``[lmax / 30, lmax]``, from ``x`` (``None``: zero, whose first product is skipped)."""
+    lmin = lmax / 30.0
+    th, de = (lmax + lmin) / 2, (lmax - lmin) / 2
+    sig = th / de
+    rho = 1 / sig
+    d = (D @ (b if x is None else b - A @ x)) / th
+    x = np.zeros_like(b) if x is None else x
+    for k in range(degree):
+        x = x + d
+        if k == degree - 1:
+            break
+        rho_new = 1 / (2 * sig - rho)
+        d = rho_new * rho * d + 2 * rho_new / de * (D @ (b - A @ x))
+        rho = rho_new
+    return x
 
 
 class VCycle:
@@ -117,14 +148,7 @@ class VCycle:
         self.nu, self.cycle, self.smoother, self.degree, self.omega = nu, cycle, smoother, degree, omega
         self.lmax = []
         if smoother == "chebyshev":
-            for Al, D in zip(self.A[:-1], self.D):
-                v = np.random.default_rng(0).standard_normal(Al.shape[0])
-                lam = 1.0
-                for _ in range(15):
-                    v = D @ (Al @ v)
-                    lam = float(np.linalg.norm(v))
-                    v /= lam
-                self.lmax.append(1.1 * lam)
+            self.lmax = [power_bound(Al, D, 15) for Al, D in zip(self.A[:-1], self.D)]
 
     def _smooth(self, l: int, b: np.ndarray, x: np.ndarray) -> np.ndarray:
         A, D = self.A[l], self.D[l]
@@ -132,20 +156,7 @@ class VCycle:
             for _ in range(self.nu):
                 x = x + self.omega * (D @ (b - A @ x))
             return x
-        lmax = self.lmax[l]
-        lmin = lmax / 30.0
-        th, de = (lmax + lmin) / 2, (lmax - lmin) / 2
-        sig = th / de
-        rho = 1 / sig
-        d = (D @ (b - A @ x)) / th
-        for k in range(self.degree):
-            x = x + d
-            if k == self.degree - 1:
-                break
-            rho_new = 1 / (2 * sig - rho)
-            d = rho_new * rho * d + 2 * rho_new / de * (D @ (b - A @ x))
-            rho = rho_new
-        return x
+        return chebyshev(A, D, b, x, self.lmax[l], self.degree)
 
     def _vcycle(self, l: int, b: np.ndarray) -> np.ndarray:
         if l == len(self.A) - 1:

@@ -378,6 +378,16 @@ def _pair_set(pairs):
     return set(_keys(pairs))
 
 
+def _move_some(x1, k, seed):
+    """``k`` random vertices' ends moved by about 3 cm: which ones (mask) and the new ends."""
+    rng = np.random.default_rng(seed)
+    moved = np.zeros(len(x1), dtype=bool)
+    moved[rng.choice(len(x1), k, replace=False)] = True
+    x2 = x1.copy()
+    x2[moved] += 0.03 * rng.normal(size=(k, 3))
+    return moved, x2
+
+
 def test_searching_again_around_the_moved_vertices_gives_the_whole_search_of_the_same_motion():
     """The impact-zone passes move a few vertices at a time; the candidates are searched again only around them
     (the primitives touching them against all), the rest kept. The result is the candidate set a whole search
@@ -389,11 +399,7 @@ def test_searching_again_around_the_moved_vertices_gives_the_whole_search_of_the
     inv = np.ones(len(x0))
     inv[:3] = 0.0
     pairs = response.Pairs.find(x0, x1, faces, edges, 0.01, inv)
-    rng = np.random.default_rng(2)
-    far = np.zeros(len(x0), dtype=bool)
-    far[rng.choice(len(x0), 40, replace=False)] = True
-    x2 = x1.copy()
-    x2[far] += 0.03 * rng.normal(size=(40, 3))
+    far, x2 = _move_some(x1, 40, seed=2)
     x2[~far] += 0.001                                   # the others drift a little: not searched again
     new, kept = pairs.refresh(x0, x2, far, faces, edges, 0.01, inv)
     ref = x1.copy()
@@ -420,11 +426,7 @@ def test_the_impact_rounds_with_searches_around_moved_vertices_find_every_impact
     r = response.Response(faces, edges, np.ones(len(x0)), 0.01, 0.0, 4)
     toi = response._Impacts(r)
     pairs, s, _ = toi.update(response.Pairs.find(x0, x1, faces, edges, 0.01, inv), x0, x1, inv)
-    rng = np.random.default_rng(3)
-    moved = np.zeros(len(x0), dtype=bool)
-    moved[rng.choice(len(x0), 30, replace=False)] = True
-    x2 = x1.copy()
-    x2[moved] += 0.03 * rng.normal(size=(30, 3))
+    moved, x2 = _move_some(x1, 30, seed=3)
     toi.moved(moved)
     pairs2, s2, n2 = toi.update(pairs, x0, x2, inv)
     assert pairs2 is not pairs and pairs2.count < 2 * pairs.count
