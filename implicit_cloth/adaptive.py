@@ -156,6 +156,20 @@ class StepController:
             failed["energy"] = gain
         return failed
 
+    def _verdict(self, failed: dict[str, float], newton: int | None) -> tuple[set[str], bool, bool]:
+        """The criteria of ``failed`` that count (not suspended), whether the step is redone with Newton
+        iterations, and whether it is redone at all (Newton, or a smaller step)."""
+        active = set(failed) - self.suspended     # (what advance unsuspends first is not in failed)
+        nonlinear = newton is None and self.newton_iterations > 1 and bool(active & {"energy", "strain"})
+        return active, nonlinear, bool(active) and (nonlinear or self.level < self.max_halvings)
+
+    def redone(self, old: State, new: State, info: StepInfo, h: float, newton: int | None) -> bool:
+        """Whether :meth:`advance` will discard the substep ``old -> new`` (of ``h``, with ``newton``) and
+        redo it, judged as it will judge it (without booking anything). A later stage that only corrects the
+        proposal, at a cost, can be skipped for a proposal that will be discarded whatever it does: the
+        step is redone anyway, and a step that cannot be redone any more is never skipped."""
+        return self._verdict(self.check(old, new, info, h), newton)[2]
+
     # ------------------------------------------------------------------ stepping
     def advance(self, state: State, dt: float, substep: Substep) -> tuple[State, StepInfo]:
         """Advance ``state`` by one nominal step ``dt`` in substeps taken by ``substep(state, h, newton)``.
@@ -188,9 +202,7 @@ class StepController:
                 self.stats.failures[c] += 1
             if "nonfinite" not in failed:                  # a criterion passed: retry on it again
                 self.suspended -= set(CRITERIA) - set(failed)
-            active = set(failed) - self.suspended
-            nonlinear = newton is None and self.newton_iterations > 1 and bool(active & {"energy", "strain"})
-            retry = bool(active) and (nonlinear or self.level < self.max_halvings)
+            active, nonlinear, retry = self._verdict(failed, newton)
             if info.collision is not None:   # collision figures: of accepted substeps; time of every attempt
                 if total.collision is None:
                     total.collision = type(info.collision)()

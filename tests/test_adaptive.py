@@ -234,3 +234,26 @@ def test_a_newton_redo_continues_from_the_linearisation_it_redoes(monkeypatch, i
     assert a["solver"]["mean_solves"] * steps == b["solver"]["mean_solves"] * steps - retries
     assert a["solver"]["mean_iterations"] < b["solver"]["mean_iterations"]
     assert a["solver"]["max_newton_iterations"] == b["solver"]["max_newton_iterations"]
+
+
+def test_redone_tells_in_advance_which_substeps_advance_discards():
+    """``StepController.redone`` (self-collision is skipped on a proposal it says will be discarded) judges a
+    proposal as ``advance`` then does: true exactly for the substeps redone (the next attempt starts from the
+    same state), false for those kept, and false for a failing substep at the smallest step (kept, reported)."""
+    sim = _perturbed(_flat(1e6, adaptive={"newton_iterations": 1, "max_halvings": 2}))
+    calls = []
+    substep = sim._substep
+
+    def recorded(state, h, newton=None):
+        new, info = substep(state, h, newton)
+        failing = bool(sim.adaptive.check(state, new, info, h))
+        calls.append((state, sim.adaptive.redone(state, new, info, h, newton), failing))
+        return new, info
+
+    sim._substep = recorded
+    rep = sim.run(frame_rate=240).report
+    assert rep["adaptive"]["forced"] > 0 and rep["status"] == "warning"
+    said = [r for _, r, _ in calls[:-1]]
+    done = [calls[i + 1][0] is calls[i][0] for i in range(len(calls) - 1)]
+    assert said == done and sum(done) > 3
+    assert any(f and not r for _, r, f in calls[:-1])       # failed at the smallest step: kept, not redone
