@@ -135,18 +135,19 @@ def _together(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray, r
     its distances at every time, so a pair ruled out so cannot come within ``reach`` in the step. It rules out
     the neighbours that a fold moving as one sweeps over, which the search's one translation for the whole
     cloth cannot."""
-    A = x0[idx]
-    B = x1[idx]
-    B = B - (B - A).mean(axis=1)[:, None, :]
-    lo, hi = np.minimum(A, B), np.maximum(A, B)
-    first = np.where(vf[:, None], [True, False, False, False], [True, True, False, False])[..., None]
-    r1 = np.where(vf, reach, 0.5 * reach)[:, None]
-    r2 = np.where(vf, 0.0, 0.5 * reach)[:, None]
-    lo1 = np.where(first, lo, np.inf).min(axis=1) - r1
-    hi1 = np.where(first, hi, -np.inf).max(axis=1) + r1
-    lo2 = np.where(first, np.inf, lo).min(axis=1) - r2
-    hi2 = np.where(first, -np.inf, hi).max(axis=1) + r2
-    return np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)
+    D = x1 - x0
+    out = np.empty(len(idx), dtype=bool)
+    for kind, cut, r1, r2 in ((vf, 1, reach, 0.0), (~vf, 2, 0.5 * reach, 0.5 * reach)):
+        ids = idx[kind]
+        P = [x0[ids[:, k]] for k in range(4)]
+        M = [D[ids[:, k]] for k in range(4)]
+        mean = 0.25 * (M[0] + M[1] + M[2] + M[3])
+        ends = [P[k] + (M[k] - mean) for k in range(4)]
+        one, two = P[:cut] + ends[:cut], P[cut:] + ends[cut:]
+        lo1, hi1 = np.minimum.reduce(one) - r1, np.maximum.reduce(one) + r1
+        lo2, hi2 = np.minimum.reduce(two) - r2, np.maximum.reduce(two) + r2
+        out[kind] = np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)
+    return out
 
 
 def _pieces(k: int) -> list[slice]:
