@@ -132,9 +132,9 @@ def _together(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray, r
     """Whether each pair's two boxes over the step overlap, inflated as in the broad phase (a vertex's by
     ``reach``, a triangle's by 0, each edge's by half of it), with the mean displacement of the pair's four
     vertices taken from their ends (the same whichever primitive comes first): a translation of one pair's
-    motion (as :meth:`Pairs.find`'s of all) keeps its distances at every time, so a pair ruled out so cannot come within ``reach`` in the step. It rules out
-    the neighbours that a fold moving as one sweeps over, which the search's one translation for the whole
-    cloth cannot."""
+    motion (as :meth:`Pairs.find`'s of all) keeps its distances at every time, so a pair ruled out so
+    cannot come within ``reach`` in the step. It rules out the neighbours that a fold moving as one sweeps
+    over, which the search's one translation for the whole cloth cannot."""
     D = x1 - x0
     out = np.empty(len(idx), dtype=bool)
     for kind, cut, r1, r2 in ((vf, 1, reach, 0.0), (~vf, 2, 0.5 * reach, 0.5 * reach)):
