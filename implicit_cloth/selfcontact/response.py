@@ -135,15 +135,20 @@ def _together(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray, r
     motion (as :meth:`Pairs.find`'s of all) keeps its distances at every time, so a pair ruled out so
     cannot come within ``reach`` in the step. It rules out the neighbours that a fold moving as one sweeps
     over, which the search's one translation for the whole cloth cannot."""
-    D = x1 - x0
-    out = np.empty(len(idx), dtype=bool)
+    A, B = x0[idx], x1[idx]
+    B -= 0.25 * ((B[:, 0] - A[:, 0]) + (B[:, 1] - A[:, 1]) + (B[:, 2] - A[:, 2]) + (B[:, 3] - A[:, 3]))[:, None, :]
+    return _boxes_meet(A, B, vf, reach)
+
+
+def _boxes_meet(A: np.ndarray, B: np.ndarray, vf: np.ndarray, reach: float) -> np.ndarray:
+    """Whether each pair's two primitives' boxes over the step (corners ``A -> B``, (K, 4, 3)) overlap, a
+    vertex's inflated by ``reach``, a triangle's by 0, each edge's by half of it (column by column: no masks,
+    no reductions over a short axis)."""
+    out = np.empty(len(A), dtype=bool)
     for kind, cut, r1, r2 in ((vf, 1, reach, 0.0), (~vf, 2, 0.5 * reach, 0.5 * reach)):
-        ids = idx[kind]
-        P = [x0[ids[:, k]] for k in range(4)]
-        M = [D[ids[:, k]] for k in range(4)]
-        mean = 0.25 * (M[0] + M[1] + M[2] + M[3])
-        ends = [P[k] + (M[k] - mean) for k in range(4)]
-        one, two = P[:cut] + ends[:cut], P[cut:] + ends[cut:]
+        a, b = A[kind], B[kind]
+        one = [Y[:, k] for Y in (a, b) for k in range(cut)]
+        two = [Y[:, k] for Y in (a, b) for k in range(cut, 4)]
         lo1, hi1 = np.minimum.reduce(one) - r1, np.maximum.reduce(one) + r1
         lo2, hi2 = np.minimum.reduce(two) - r2, np.maximum.reduce(two) + r2
         out[kind] = np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)
@@ -237,15 +242,8 @@ def _impacts(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray, to
     else:
         cand = np.arange(k)
     # the two primitives' boxes over the step must overlap (first: vertex or edge, second: triangle or edge)
-    lo, hi = np.minimum(A[cand], B[cand]), np.maximum(A[cand], B[cand])
-    first = np.where(vf[cand, None], [True, False, False, False], [True, True, False, False])
-    big = np.inf
-    lo1 = np.where(first[..., None], lo, big).min(axis=1)
-    hi1 = np.where(first[..., None], hi, -big).max(axis=1)
-    lo2 = np.where(~first[..., None], lo, big).min(axis=1)
-    hi2 = np.where(~first[..., None], hi, -big).max(axis=1)
     near = np.zeros(k, dtype=bool)
-    near[cand[np.all((lo1 <= hi2) & (lo2 <= hi1), axis=1)]] = True
+    near[cand[_boxes_meet(A[cand], B[cand], vf[cand], 0.0)]] = True
     # each kind's time of impact, and its normal then: the triangle's (corners 1, 2, 3) for a vertex-triangle
     # pair, minus the two edges' cross product for an edge-edge pair; ``side`` orients it (first minus second)
     kinds: tuple[tuple[np.ndarray, Callable[..., Any], tuple[int, int, int, int], float], ...] = (
