@@ -122,3 +122,49 @@ def inelastic(active: Planes, cons: Constraints, carried: np.ndarray, before: An
     dv = change[:, None] * n
     after.v[i] += dv
     return float(np.einsum("i,ij,ij->", masses[i], dv, u))
+
+
+
+def tangential(v: np.ndarray, cons: Constraints) -> np.ndarray:
+    """The contacts' tangential velocities (K, 3) relative to the obstacle, from the cloth velocities ``v``."""
+    rel = v[cons.contact] - cons.velocity
+    return rel - np.einsum("ij,ij->i", rel, cons.normal)[:, None] * cons.normal
+
+
+def smooth_model(active: Planes, mu: np.ndarray, normal: np.ndarray, rel_t: np.ndarray,
+                 eps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Smoothed Coulomb friction linearised at the tangential velocities ``rel_t`` (K, 3) relative to the
+    obstacle: ``(sliding, force, damping)``. Below the sliding speed ``eps`` a viscous force
+    ``-(mu N / eps) v_t`` (damping ``mu N / eps`` on the tangent plane); above it the kinetic force
+    ``-mu N t`` (t the sliding direction), constant along t, with the damping ``mu N / |v_t|`` across it that
+    turns the direction. (Huber's smoothing of ``mu N |v_t|``: convex, so the force only takes energy away.)"""
+    speed = np.sqrt(np.einsum("ij,ij->i", rel_t, rel_t))
+    N = np.maximum(active.force, 0.0)
+    sliding = (speed > eps) & (mu * N > 0)
+    t = np.where(sliding[:, None], rel_t / np.maximum(speed, 1e-300)[:, None], 0.0)
+    P = np.eye(3)[None] - normal[:, :, None] * normal[:, None, :]
+    k = mu * N / np.maximum(speed, eps)
+    D = k[:, None, None] * (P - t[:, :, None] * t[:, None, :])
+    force = -(mu * N)[:, None] * t
+    return sliding, force, D
+
+
+def smooth_update(active: Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray, v_used: np.ndarray,
+                  h: float, mu: np.ndarray, eps: float, switched: np.ndarray, turn: float = 0.9) -> np.ndarray:
+    """Smoothed friction after a solve: the contacts' normal forces from its impulse (in place); returns the
+    contacts whose linearisation the solve left (sliding that stopped or stuck that slides, or a sliding
+    direction turned by more than ``acos(turn)``), for which the step is solved again; at most once a step
+    for each vertex (``switched``, updated in place), so the solves of a step cannot cycle."""
+    if J is None or not cons.n_contacts:
+        return np.zeros(len(active), dtype=bool)
+    jn = np.einsum("ij,ij->i", J[active.idx], cons.normal)
+    active.force = jn / h
+    r0, r1 = tangential(v_used, cons), tangential(v, cons)
+    s0 = np.sqrt(np.einsum("ij,ij->i", r0, r0))
+    s1 = np.sqrt(np.einsum("ij,ij->i", r1, r1))
+    slid0, slid1 = s0 > eps, s1 > eps
+    cos = np.einsum("ij,ij->i", r0, r1) / np.maximum(s0 * s1, 1e-300)
+    out = ((slid0 != slid1) | (slid0 & slid1 & (cos < turn))) & (mu * np.maximum(active.force, 0.0) > 0)
+    out &= ~switched[active.idx]
+    switched[active.idx[out]] = True
+    return out
