@@ -55,8 +55,6 @@ class Collider:
         self._carry: list[tuple[Any, contacts.Planes]] = []
         #: the last attempt at a step: (state, h, its contacts, its end velocities), for a nonlinear redo
         self._attempt: tuple[Any, float, contacts.Planes, np.ndarray] | None = None
-        #: smoothed friction: the cloth velocities the contacts' damping is taken at (the last solve's)
-        self._vref: np.ndarray | None = None
 
     # the settings, as the report reads them
     @property
@@ -136,7 +134,6 @@ class Collider:
         ``collision`` is this stage's :class:`~implicit_cloth.collision.context.CollisionInfo`.
         """
         t_start = time.perf_counter()
-        self._vref = state.v
         active, carried = self._carried(state, h)
         start = None
         last = self._attempt
@@ -183,13 +180,7 @@ class Collider:
             if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
                 break
             changed = False
-            v_used, self._vref = self._vref, new.v
-            if len(active) and self.ctx.smooth > 0:
-                changed = bool(np.any(friction.smooth_update(active, cons, si.constraint_impulse, new.v, v_used,
-                                                             h, self._mu[active.ob], self.ctx.smooth, switched)))
-                active, pulled = self._release_pulls(active, h, released)
-                changed |= pulled
-            elif len(active):
+            if len(active):
                 active, changed = self._after_solve(active, cons, si.constraint_impulse, new.v, h,
                                                     carried if rnd == 0 else active.idx, switched, released)
             active, viol = self._detect(state, new, active, info)
@@ -242,12 +233,8 @@ class Collider:
         t = time.perf_counter() - ts
         total.absorb(si)
         total.constraint_impulse = si.constraint_impulse
-        if self.ctx.smooth > 0:
-            friction.smooth_update(active, cons, si.constraint_impulse, new.v, new.v, h, self._mu[active.ob],
-                                   self.ctx.smooth, np.ones(self.ctx.n, dtype=bool))
-        else:
-            friction.update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob],
-                            np.ones(self.ctx.n, dtype=bool))      # every state held: forces and directions only
+        friction.update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob],
+                        np.ones(self.ctx.n, dtype=bool))      # every state held: forces and directions only
         return new, cons, t
 
     def _after_solve(self, active: contacts.Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray,
@@ -261,18 +248,12 @@ class Collider:
         """
         changed = friction.update(active, cons, J, v, h, self._mu[active.ob], switched)
         again = bool(np.any(changed & ~np.isin(active.idx, settled)))
-        active, pulled = self._release_pulls(active, h, released)
-        return active, again or pulled
-
-    def _release_pulls(self, active: contacts.Planes, h: float,
-                       released: np.ndarray) -> tuple[contacts.Planes, bool]:
-        """``active`` without the contacts pulling their vertex hard towards the obstacle (:data:`PULL_SPEED`),
-        and whether there were any (each vertex released once a step)."""
         pull = (active.force * h < -PULL_SPEED * self.ctx.masses[active.idx]) & ~released[active.idx]
-        if not np.any(pull):
-            return active, False
-        released[active.idx[pull]] = True
-        return active.take(~pull), True
+        if np.any(pull):
+            released[active.idx[pull]] = True
+            active = active.take(~pull)
+            again = True
+        return active, again
 
     def _finish(self, state: Any, new: Any, h: float, cons: Constraints, active: contacts.Planes,
                 carried: np.ndarray, J: np.ndarray | None, limiter: Any, info: CollisionInfo) -> float:
@@ -283,17 +264,9 @@ class Collider:
         """
         work = 0.0
         if cons.n_contacts and J is not None:
-            fr = cons.friction + cons.damping_force(new.v) if cons.damped else cons.friction
-            work += float(np.einsum("ij,ij->", J[cons.contact] + h * fr, cons.velocity))
-        if len(active) and self.ctx.smooth <= 0:
-            friction.stop_reversed(active, cons, new)
-        elif len(active) and cons.n_contacts and np.any(cons.friction):
-            # the kinetic part pushed along a motion it reversed: stop that motion (velocities only)
-            rel = new.v[cons.contact] - cons.velocity
-            rel_t = rel - np.einsum("ij,ij->i", rel, cons.normal)[:, None] * cons.normal
-            back = np.einsum("ij,ij->i", rel_t, cons.friction) > 0
-            new.v[cons.contact[back]] -= rel_t[back]
+            work += float(np.einsum("ij,ij->", J[cons.contact] + h * cons.friction, cons.velocity))
         if len(active):
+            friction.stop_reversed(active, cons, new)
             work += friction.inelastic(active, cons, carried, state, new, self.ctx.restitution, self.ctx.masses)
         if limiter is not None:
             limiter.apply(new, h, planes=(cons.contact, cons.normal, cons.offset) if cons.n_contacts else None)
@@ -358,11 +331,5 @@ class Collider:
             n[sel] = active.n[sel] @ R1.T
             offset[sel] = active.off[sel] + n[sel] @ c1
             u[sel] = (ob.motion.to_world(active.point[sel], t1) - ob.motion.to_world(active.point[sel], t0)) / h
-        if self.ctx.smooth > 0:    # every contact held along its normal, friction a damping in the solve
-            cons = pins.with_contacts(active.idx, n, offset, u)
-            v = self._vref if self._vref is not None else np.zeros((self.ctx.n, 3))
-            _, fr, damping = friction.smooth_model(active, self._mu[active.ob], n, friction.tangential(v, cons),
-                                                   self.ctx.smooth)
-            return pins.with_contacts(active.idx, n, offset, u, friction=fr, damping=damping)
         stick, fr = friction.friction_forces(active, self._mu[active.ob])
         return pins.with_contacts(active.idx, n, offset, u, stick, fr)
