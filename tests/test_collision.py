@@ -443,6 +443,27 @@ def test_friction_on_a_tilted_plane_holds_below_and_slides_above_the_friction_an
     assert np.allclose(sim.positions[:, 2], TH, atol=1e-9)      # kept on the surface, at the thickness
 
 
+def test_a_resting_contact_that_leaves_its_friction_cone_slides_in_that_step():
+    """A cloth resting (sticking) on a floor that is jerked sideways at 1 m/s: in the jerk's step the carried
+    contacts leave their friction cone and slide, so the floor drags the cloth by kinetic friction only, at
+    mu g per step (backward Euler: v = n mu g h after n steps), not at the floor's speed. (Before carried
+    contacts' slips were solved again within their step, the first step held the cloth to the floor: 1 m/s.)"""
+    mu, h, g, t0 = 0.3, 1 / 60, 9.81, 0.2
+    floor = {"shape": "plane", "normal": [0, 0, 1],
+             "keyframes": [{"time": 0.0, "center": [0.0, 0.0, 0.0]}, {"time": t0, "center": [0.0, 0.0, 0.0]},
+                           {"time": t0 + 1.0, "center": [1.0, 0.0, 0.0]}]}
+    sc = cloth_scene(floor, dt=h, duration=1.0, res=8, size=0.3, center=(0, 0, TH), friction=mu)
+    sc["effects"].pop("drag")
+    sim = ic.Simulator(sc)
+    sim.step(round(t0 / h))
+    assert np.abs(sim.velocities).max() < 1e-9                        # at rest, sticking
+    for n in (1, 2, 3):
+        sim.step(1)
+        vx = sim.velocities[:, 0]
+        assert vx == pytest.approx(np.full_like(vx, n * mu * g * h), rel=1e-6)
+    assert np.allclose(sim.positions[:, 2], TH, atol=1e-9)
+
+
 def test_tilted_plane_obstacle_normal_and_restitution():
     """A vertex dropped on a plane with restitution e leaves with e times its normal speed."""
     sc = cloth_scene({"shape": "plane", "point": [0, 0, 0], "normal": [0, 0, 1]}, dt=1 / 100, duration=0.05,
