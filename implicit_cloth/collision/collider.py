@@ -255,7 +255,7 @@ class Collider:
         1 m/s in one step instead of ``mu g`` per step. Solving every carried slip again (tried, static
         obstacles too) brought folds sliding down a cone to rest sooner (the 64² cone of
         ``benchmarks/contact_energy.py`` at dt 1/30: from 2.0 s against 3.6; 2.1 s at dt 1/120), but a 32²
-        drape on a sphere at dt 1/30 later (1.9 s against 1.5; 1.3 s at dt 1/120) at 2.6 times the cost, and
+        drape on a sphere at dt 1/30 later (1.9 s against 1.5; 1.3 s at dt 1/120) at 1.5 times the cost, and
         a resting 16² drape at dt 1/60 never settled (held vertices taking turns at sliding at 0.5 mm/s). A
         threshold on the excess over the cone (3-10 times the vertex's weight over the step) let the 16²
         drape settle, not the 32² one sooner, and missed the jerked floor (an excess of 6 weights).
