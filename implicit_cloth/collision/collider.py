@@ -155,7 +155,16 @@ class Collider:
 
     def _solve_rounds(self, integrator: Any, state: Any, h: float, pins: Constraints, active: contacts.Planes,
                       carried: np.ndarray, newton: int | None, start: np.ndarray | None):
-        """The rounds of :meth:`step`: solve, update friction and releases, detect; again while needed."""
+        """The rounds of :meth:`step`: solve, update friction and releases, detect; again while needed.
+
+        Self-collision's re-solve of a step that adaptive stepping redoes with Newton iterations (``newton`` >
+        1, with vertices its corrections prescribe) solves the rounds with one linearisation each and continues
+        the last with the ``newton - 1`` Newton iterations once (:meth:`_refine`), instead of iterating to
+        convergence in every round: the rounds only find the contacts. On the crumple benchmark's 1.5 s, side
+        by side, the 64² sheet took 387 s of CPU instead of 443 (its first second: 140 instead of 178), the
+        32² one 72 instead of 82; substeps 495 against 497 (32²: 326 against 290), status ok, no crossing.
+        (A plain Newton redo's rounds, without self-collision, still iterate in every round.)
+        """
         total = StepInfo()
         info = CollisionInfo()
         guess = None
@@ -165,12 +174,15 @@ class Collider:
         released = np.zeros(self.ctx.n, dtype=bool)
         balance = 0.0
         extra = len(pins.pinned) > len(self.model.pinned)     # vertices prescribed for this step (self-collision)
+        # self-collision's re-solve of a Newton redo: the contact rounds linear, the Newton iterations once, last
+        lazy = extra and newton is not None and newton > 1
+        round_newton = None if lazy else newton
         for rnd in range(self.ctx.max_rounds):
             if extra and len(active):                           # a prescribed vertex is no contact
                 active = active.take(~np.isin(active.idx, pins.pinned))
             cons = self._constraints(pins, active, state.t, h)
             ts = time.perf_counter()
-            new, si = integrator.step(state, h, cons, guess, newton, start)
+            new, si = integrator.step(state, h, cons, guess, round_newton, start)
             t_solve += time.perf_counter() - ts
             start = None
             total.absorb(si)
@@ -189,8 +201,14 @@ class Collider:
             if not changed:
                 break      # small new violations are held from the next step on; the response keeps them out now
             guess = new.v - state.v
-        if len(active) and not extra and (newton is None or newton <= 1) and self.ctx.newton > 1 and balance > BALANCE \
-                and np.all(np.isfinite(new.v)):
+        if lazy and newton is not None and np.all(np.isfinite(new.v)):
+            active = active.take(~np.isin(active.idx, pins.pinned))
+            new, cons, t = self._refine(integrator, state, h, pins, active, new, total, switched, newton - 1)
+            t_solve += t
+            if np.all(np.isfinite(new.x)):
+                active, _ = self._detect(state, new, active, info)
+        elif len(active) and not extra and (newton is None or newton <= 1) and self.ctx.newton > 1 \
+                and balance > BALANCE and np.all(np.isfinite(new.v)):
             new, cons, t = self._refine(integrator, state, h, pins, active, new, total, switched)
             t_solve += t
             if np.all(np.isfinite(new.x)):   # contacts the refined motion makes: held from the next step on
@@ -208,7 +226,8 @@ class Collider:
         return contacts.merge(active, found), float(found.viol.max())
 
     def _refine(self, integrator: Any, state: Any, h: float, pins: Constraints, active: contacts.Planes,
-                new: Any, total: StepInfo, switched: np.ndarray) -> tuple[Any, Constraints, float]:
+                new: Any, total: StepInfo, switched: np.ndarray,
+                iterations: int | None = None) -> tuple[Any, Constraints, float]:
         """Newton iterations from the rounds' last linear solve, with its contacts (``collision.newton_iterations``),
         where that solve left the free vertices out of balance by more than :data:`BALANCE`.
 
@@ -230,12 +249,14 @@ class Collider:
         """
         cons = self._constraints(pins, active, state.t, h)
         ts = time.perf_counter()
-        new, si = integrator.step(state, h, cons, None, self.ctx.newton - 1, new.v)
+        new, si = integrator.step(state, h, cons, None, self.ctx.newton - 1 if iterations is None else iterations,
+                                  new.v)
         t = time.perf_counter() - ts
         total.absorb(si)
         total.constraint_impulse = si.constraint_impulse
-        friction.update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob],
-                        np.ones(self.ctx.n, dtype=bool))      # every state held: forces and directions only
+        if len(active):
+            friction.update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob],
+                            np.ones(self.ctx.n, dtype=bool))      # every state held: forces and directions only
         return new, cons, t
 
     def _after_solve(self, active: contacts.Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray,
