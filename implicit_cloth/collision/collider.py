@@ -174,9 +174,9 @@ class Collider:
         released = np.zeros(self.ctx.n, dtype=bool)
         balance = 0.0
         extra = len(pins.pinned) > len(self.model.pinned)     # vertices prescribed for this step (self-collision)
-        # self-collision's re-solve of a Newton redo: the contact rounds linear, the Newton iterations once, last
-        lazy = extra and newton is not None and newton > 1
-        round_newton = None if lazy else newton
+        # self-collision's re-solve of a Newton redo: the contact rounds linear, its Newton iterations once, last
+        redo_newton = newton - 1 if extra and newton is not None and newton > 1 else None
+        round_newton = None if redo_newton is not None else newton
         for rnd in range(self.ctx.max_rounds):
             if extra and len(active):                           # a prescribed vertex is no contact
                 active = active.take(~np.isin(active.idx, pins.pinned))
@@ -201,15 +201,14 @@ class Collider:
             if not changed:
                 break      # small new violations are held from the next step on; the response keeps them out now
             guess = new.v - state.v
-        if lazy and newton is not None and np.all(np.isfinite(new.v)):
+        iterations = redo_newton
+        if redo_newton is not None:
             active = active.take(~np.isin(active.idx, pins.pinned))
-            new, cons, t = self._refine(integrator, state, h, pins, active, new, total, switched, newton - 1)
-            t_solve += t
-            if np.all(np.isfinite(new.x)):
-                active, _ = self._detect(state, new, active, info)
         elif len(active) and not extra and (newton is None or newton <= 1) and self.ctx.newton > 1 \
-                and balance > BALANCE and np.all(np.isfinite(new.v)):
-            new, cons, t = self._refine(integrator, state, h, pins, active, new, total, switched)
+                and balance > BALANCE:
+            iterations = self.ctx.newton - 1
+        if iterations is not None and np.all(np.isfinite(new.v)):
+            new, cons, t = self._refine(integrator, state, h, pins, active, new, total, iterations)
             t_solve += t
             if np.all(np.isfinite(new.x)):   # contacts the refined motion makes: held from the next step on
                 active, _ = self._detect(state, new, active, info)
@@ -226,10 +225,10 @@ class Collider:
         return contacts.merge(active, found), float(found.viol.max())
 
     def _refine(self, integrator: Any, state: Any, h: float, pins: Constraints, active: contacts.Planes,
-                new: Any, total: StepInfo, switched: np.ndarray,
-                iterations: int | None = None) -> tuple[Any, Constraints, float]:
-        """Newton iterations from the rounds' last linear solve, with its contacts (``collision.newton_iterations``),
-        where that solve left the free vertices out of balance by more than :data:`BALANCE`.
+                new: Any, total: StepInfo, iterations: int) -> tuple[Any, Constraints, float]:
+        """``iterations`` Newton iterations from the rounds' last linear solve, with its contacts: the step's
+        ``collision.newton_iterations`` - 1 where that solve left the free vertices out of balance by more than
+        :data:`BALANCE`, or a redo's own (self-collision's re-solve of a Newton redo, :meth:`_solve_rounds`).
 
         A single linearisation leaves the free vertices out of balance by the linearisation error of their
         springs' forces (rms 3-6 times a vertex's weight on a 32² drape at dt 1/30) and puts it into the
@@ -241,16 +240,17 @@ class Collider:
         of the rounds (here the next step's), never by the refinement's impulses, whose Newton solves stop at
         a loose forcing tolerance. (Letting the refinement switch states kept a landed 16² drape at dt 1/60
         sliding at mm/s, stick and slip taking turns from step to step; held, it comes to rest to 1e-15 m/s.)
-        Not run in the solves of a step that self-collision's corrections prescribe vertices for (those solves
-        follow a first one that had its refinement): the iterations there pull against the prescribed
+        The balance-driven refinement is not run in the solves of a step that self-collision's corrections
+        prescribe vertices for (those solves follow a first one that had its refinement; a redo's re-solve
+        takes the redo's iterations here, as it took them in every round before): the iterations there pull
+        against the prescribed
         vertices, whose holding forces are not booked as work, and made energy the balance saw (a towel's
         fold landing, 0.9 mJ in a step forced at the smallest substep).
         Returns the state, its constraints and the solve time.
         """
         cons = self._constraints(pins, active, state.t, h)
         ts = time.perf_counter()
-        new, si = integrator.step(state, h, cons, None, self.ctx.newton - 1 if iterations is None else iterations,
-                                  new.v)
+        new, si = integrator.step(state, h, cons, None, iterations, new.v)
         t = time.perf_counter() - ts
         total.absorb(si)
         total.constraint_impulse = si.constraint_impulse
