@@ -58,6 +58,9 @@ class Constraints:
         Sticking contacts (tangential velocity prescribed: the obstacle's).
     friction : (K, 3) array
         Kinetic friction force on sliding contacts, N (0 on sticking ones).
+    damping : (K, 3, 3) array
+        Friction damping of each contact, N*s/m, symmetric and tangential (smoothed friction: the force
+        ``-damping (v - velocity)`` in the solve, beside ``friction``; empty when there is none).
     """
 
     pinned: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
@@ -68,6 +71,7 @@ class Constraints:
     velocity: np.ndarray = field(default_factory=lambda: _empty(3))
     stick: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     friction: np.ndarray = field(default_factory=lambda: _empty(3))
+    damping: np.ndarray = field(default_factory=lambda: _empty(3, 3))
 
     @classmethod
     def of_pins(cls, model) -> "Constraints":
@@ -75,24 +79,37 @@ class Constraints:
         return cls(np.asarray(model.pinned, dtype=np.int64), np.asarray(model.pin_velocity, dtype=float))
 
     def with_contacts(self, idx: np.ndarray, normal: np.ndarray, offset: np.ndarray, velocity: np.ndarray,
-                      stick: np.ndarray | None = None, friction: np.ndarray | None = None) -> "Constraints":
+                      stick: np.ndarray | None = None, friction: np.ndarray | None = None,
+                      damping: np.ndarray | None = None) -> "Constraints":
         """These pins with the given contacts (replacing any contacts); by default frictionless."""
         idx = np.asarray(idx, dtype=np.int64)
         st = np.zeros(len(idx), dtype=bool) if stick is None else np.asarray(stick, dtype=bool)
         fr = np.zeros((len(idx), 3)) if friction is None else np.asarray(friction, dtype=float)
+        dm = _empty(3, 3) if damping is None else np.asarray(damping, dtype=float)
         return Constraints(self.pinned, self.pin_velocity, idx, np.asarray(normal, dtype=float),
-                           np.asarray(offset, dtype=float), np.asarray(velocity, dtype=float), st, fr)
+                           np.asarray(offset, dtype=float), np.asarray(velocity, dtype=float), st, fr, dm)
 
     def with_pins(self, idx: np.ndarray, velocity: np.ndarray) -> "Constraints":
         """These constraints with vertices ``idx`` (not pinned already, in no contact) also prescribed to end the
         step with ``velocity`` (K, 3), as pins are (self-collision's re-solve)."""
         return Constraints(np.concatenate([self.pinned, np.asarray(idx, dtype=np.int64)]),
                            np.concatenate([self.pin_velocity, np.asarray(velocity, dtype=float).reshape(-1, 3)]),
-                           self.contact, self.normal, self.offset, self.velocity, self.stick, self.friction)
+                           self.contact, self.normal, self.offset, self.velocity, self.stick, self.friction,
+                           self.damping)
 
     @property
     def n_contacts(self) -> int:
         return len(self.contact)
+
+    @property
+    def damped(self) -> bool:
+        """Whether the contacts carry a friction damping (smoothed friction)."""
+        return len(self.damping) > 0
+
+    def damping_force(self, v: np.ndarray) -> np.ndarray:
+        """The contacts' friction damping force at the cloth velocities ``v`` (N, 3): ``-damping (v - u)``,
+        (K, 3), N."""
+        return -np.einsum("kij,kj->ki", self.damping, v[self.contact] - self.velocity)
 
     def filter_blocks(self) -> np.ndarray:
         """``S_i``: ``I - n_i n_i^T`` of sliding contacts, 0 of sticking ones, (K, 3, 3)."""

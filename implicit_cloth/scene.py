@@ -61,7 +61,8 @@ CLOTH_KEYS = (
     "size", "resolution", "center", "plane", "mesh", "scale", "translation",
     "mass", "density", "pins", "material", "springs", "velocity",
 )
-COLLISION_KEYS = ("thickness", "restitution", "max_iterations", "newton_iterations", "self_collision", "self_friction")
+COLLISION_KEYS = ("thickness", "restitution", "max_iterations", "newton_iterations", "friction_speed",
+                  "self_collision", "self_friction")
 #: Coulomb coefficient between layers of cloth when ``self_collision`` is on and ``self_friction`` is not given.
 SELF_FRICTION = 0.3
 COLLISION_DEFAULTS: dict[str, Any] = {"thickness": 0.005, "restitution": 0.0, "max_iterations": 8,
@@ -359,6 +360,11 @@ def _collision(d: Any) -> dict[str, Any]:
         out["max_iterations"] = integer("collision.max_iterations", d["max_iterations"], lo=1, hi=1000)
     if "newton_iterations" in d:
         out["newton_iterations"] = integer("collision.newton_iterations", d["newton_iterations"], lo=1, hi=100)
+    # smoothed friction: in the normalised table only when asked for (a scene without it is unchanged)
+    if "friction_speed" in d:
+        speed = number("collision.friction_speed", d["friction_speed"], lo=0.0)
+        if speed > 0:
+            out["friction_speed"] = speed
     # self-collision's keys appear in the normalised table only when it is on (a scene without it is unchanged)
     if boolean("collision.self_collision", d.get("self_collision", False)):
         out["self_collision"] = True

@@ -254,9 +254,12 @@ class Collider:
         t = time.perf_counter() - ts
         total.absorb(si)
         total.constraint_impulse = si.constraint_impulse
-        if len(active):
-            friction.update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob],
-                            np.ones(self.ctx.n, dtype=bool))      # every state held: forces and directions only
+        every = np.ones(self.ctx.n, dtype=bool)                   # every state held: forces and directions only
+        if len(active) and self.ctx.smooth > 0:
+            friction.smooth_update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob],
+                                   self.ctx.smooth, every)
+        elif len(active):
+            friction.update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob], every)
         return new, cons, t
 
     def _after_solve(self, active: contacts.Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray,
@@ -282,11 +285,14 @@ class Collider:
         drape settle, not the 32² one sooner, and missed the jerked floor (an excess of 6 weights).
         """
         mu = self._mu[active.ob]
-        changed = friction.update(active, cons, J, v, h, mu, switched)
-        redo = ~np.isin(active.idx, settled)
-        if first:
-            redo |= ~active.stick & np.any(cons.velocity != 0.0, axis=1)
-        again = bool(np.any(changed & redo))
+        if self.ctx.smooth > 0:     # smoothed friction: every state change is solved again (friction.smooth_update)
+            again = bool(np.any(friction.smooth_update(active, cons, J, v, h, mu, self.ctx.smooth, switched)))
+        else:
+            changed = friction.update(active, cons, J, v, h, mu, switched)
+            redo = ~np.isin(active.idx, settled)
+            if first:
+                redo |= ~active.stick & np.any(cons.velocity != 0.0, axis=1)
+            again = bool(np.any(changed & redo))
         pull = (active.force * h < -PULL_SPEED * self.ctx.masses[active.idx]) & ~released[active.idx]
         if np.any(pull):
             released[active.idx[pull]] = True
@@ -303,9 +309,13 @@ class Collider:
         """
         work = 0.0
         if cons.n_contacts and J is not None:
-            work += float(np.einsum("ij,ij->", J[cons.contact] + h * cons.friction, cons.velocity))
-        if len(active):
+            fr = cons.friction + cons.damping_force(new.v) if cons.damped else cons.friction
+            work += float(np.einsum("ij,ij->", J[cons.contact] + h * fr, cons.velocity))
+        if len(active) and self.ctx.smooth > 0:
+            friction.stop_reversed_smooth(active, cons, new)
+        elif len(active):
             friction.stop_reversed(active, cons, new)
+        if len(active):
             work += friction.inelastic(active, cons, carried, state, new, self.ctx.restitution, self.ctx.masses)
         if limiter is not None:
             limiter.apply(new, h, planes=(cons.contact, cons.normal, cons.offset) if cons.n_contacts else None)
@@ -370,5 +380,8 @@ class Collider:
             n[sel] = active.n[sel] @ R1.T
             offset[sel] = active.off[sel] + n[sel] @ c1
             u[sel] = (ob.motion.to_world(active.point[sel], t1) - ob.motion.to_world(active.point[sel], t0)) / h
+        if self.ctx.smooth > 0:    # every contact held along its normal only, its friction a force of the solve
+            fr, damping = friction.smooth_model(active, self._mu[active.ob], n, self.ctx.smooth)
+            return pins.with_contacts(active.idx, n, offset, u, friction=fr, damping=damping)
         stick, fr = friction.friction_forces(active, self._mu[active.ob])
         return pins.with_contacts(active.idx, n, offset, u, stick, fr)

@@ -76,6 +76,9 @@ class Planes:
         Friction state: sticking (held tangentially) or sliding.
     slip : (K, 3) array
         World direction of a sliding contact's motion relative to the obstacle (0 while sticking).
+    speed : (K,) array
+        Smoothed friction (``collision.friction_speed``): a sliding contact's speed relative to the obstacle
+        where its friction is linearised, m/s (0 while sticking, and with Coulomb's states).
     """
 
     idx: np.ndarray
@@ -88,13 +91,14 @@ class Planes:
     viol: np.ndarray
     stick: np.ndarray
     slip: np.ndarray
+    speed: np.ndarray
 
     @classmethod
     def empty(cls) -> "Planes":
         z = np.zeros(0)
         i = np.zeros(0, dtype=np.int64)
         return cls(i, i.copy(), np.zeros((0, 3)), z, np.zeros((0, 3)), i.copy(), z.copy(), z.copy(),
-                   np.zeros(0, dtype=bool), np.zeros((0, 3)))
+                   np.zeros(0, dtype=bool), np.zeros((0, 3)), z.copy())
 
     def __len__(self) -> int:
         return len(self.idx)
@@ -124,7 +128,7 @@ def make(idx, ob: int, n, off, point, kind: int, viol) -> Planes:
     k = len(idx)
     return Planes(np.asarray(idx, dtype=np.int64), np.full(k, ob, dtype=np.int64), np.asarray(n, dtype=float),
                   np.asarray(off, dtype=float), np.asarray(point, dtype=float), np.full(k, kind, dtype=np.int64),
-                  np.zeros(k), np.asarray(viol, dtype=float), np.ones(k, dtype=bool), np.zeros((k, 3)))
+                  np.zeros(k), np.asarray(viol, dtype=float), np.ones(k, dtype=bool), np.zeros((k, 3)), np.zeros(k))
 
 
 def merge(active: Planes, found: Planes) -> Planes:
@@ -152,6 +156,7 @@ def inherit(old: Planes, new: Planes) -> None:
     new.force[had] = old.force[r[had]]
     new.stick[had] = old.stick[r[had]]
     new.slip[had] = old.slip[r[had]]
+    new.speed[had] = old.speed[r[had]]
 
 
 # --------------------------------------------------------------------------- detection

@@ -88,6 +88,8 @@ class Context:
     inv_mass: np.ndarray
     friction: bool = True
     newton: int = 1
+    #: smoothed friction's sliding speed, m/s (0: Coulomb friction with sticking and sliding states)
+    smooth: float = 0.0
 
     @classmethod
     def build(cls, obstacles: list[dict[str, Any]], settings: dict[str, Any], model: Any) -> "Context":
@@ -97,7 +99,8 @@ class Context:
         return cls([Obstacle.from_spec(s) for s in obstacles], float(settings["thickness"]),
                    float(settings["restitution"]), int(settings["max_iterations"]), faces, cloth_edges(faces),
                    np.asarray(model.masses, dtype=float), inv_mass,
-                   newton=int(settings.get("newton_iterations", COLLISION_NEWTON)))
+                   newton=int(settings.get("newton_iterations", COLLISION_NEWTON)),
+                   smooth=float(settings.get("friction_speed", 0.0)))
 
     @property
     def n(self) -> int:

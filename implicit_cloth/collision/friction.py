@@ -122,3 +122,100 @@ def inelastic(active: Planes, cons: Constraints, carried: np.ndarray, before: An
     dv = change[:, None] * n
     after.v[i] += dv
     return float(np.einsum("i,ij,ij->", masses[i], dv, u))
+
+
+# --------------------------------------------------------------------------- smoothed friction
+def tangential(v: np.ndarray, cons: Constraints) -> np.ndarray:
+    """The contacts' tangential velocities (K, 3) relative to the obstacle, from the cloth velocities ``v``."""
+    rel = v[cons.contact] - cons.velocity
+    return rel - np.einsum("ij,ij->i", rel, cons.normal)[:, None] * cons.normal
+
+
+def smooth_model(active: Planes, mu: np.ndarray, normal: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Smoothed Coulomb friction of the contacts, linearised as each one's state says: ``(force, damping)``.
+
+    The force is Huber's smoothing of Coulomb's, ``-mu N v_t / max(|v_t|, eps)`` (``v_t`` the tangential
+    velocity relative to the obstacle, ``eps`` the sliding speed ``collision.friction_speed``): the gradient
+    of a convex dissipation potential, so it only takes energy away. A *held* contact (``active.stick``) is
+    linearised in its viscous branch, the damping ``mu N / eps`` on the tangent plane and no constant part
+    (its force ``-(mu N / eps) v_t`` stays within the cone while ``|v_t| <= eps``); a *sliding* one at its
+    sliding velocity ``speed * slip``: the kinetic force ``-mu N slip``, constant along ``slip``, with the
+    damping ``mu N / speed`` across it that turns its direction. ``N`` is the contact's normal force in the
+    last solve that held it (0 for a new contact: no friction until a solve has held it). Returns the constant
+    forces (K, 3), N, and the symmetric positive semi-definite damping blocks (K, 3, 3), N*s/m.
+    """
+    N = mu * np.maximum(active.force, 0.0)
+    P = np.eye(3)[None] - normal[:, :, None] * normal[:, None, :]
+    held = active.stick | (active.speed <= 0.0)
+    t = active.slip - np.einsum("ij,ij->i", active.slip, normal)[:, None] * normal   # on this step's plane
+    tn = np.sqrt(np.einsum("ij,ij->i", t, t))
+    held |= tn < 1e-12
+    t = np.where(held[:, None], 0.0, t / np.maximum(tn, 1e-300)[:, None])
+    k = N / np.where(held, eps, np.maximum(active.speed, eps))
+    D = k[:, None, None] * (P - t[:, :, None] * t[:, None, :])
+    return -N[:, None] * t, D
+
+
+def smooth_update(active: Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray, h: float,
+                  mu: np.ndarray, eps: float, switched: np.ndarray) -> np.ndarray:
+    """Smoothed friction after a solve (in place): the contacts' normal forces from its impulse and their states.
+
+    * a held contact that the solve left sliding faster than ``eps`` (its viscous force then exceeds the cone)
+      slides, at its end velocity;
+    * a sliding contact whose motion the solve reversed (its kinetic force pushed along the motion: energy
+      from nowhere) is held;
+    * a sliding contact slower than ``eps`` is held from the next step on; the others take their end velocity
+      as their sliding velocity.
+
+    A state changes at most once a step for each vertex (``switched``, updated in place: so the solves of a
+    step cannot cycle), twice for a new contact (its first solve, without friction, then sliding). Returns the
+    contacts whose state changed: the step is solved again for them.
+    """
+    if J is None or not cons.n_contacts:
+        return np.zeros(len(active), dtype=bool)
+    n = cons.normal
+    jn = np.einsum("ij,ij->i", J[active.idx], n)
+    was_new = active.force == 0.0
+    active.force = jn / h
+    vt = tangential(v, cons)
+    speed = np.sqrt(np.einsum("ij,ij->i", vt, vt))
+    rub = mu * np.maximum(active.force, 0.0) > 0
+    free = ~switched[active.idx] & rub
+    held = active.stick | (active.speed <= 0.0)
+    to_slide = held & free & (speed > eps)
+    reversed_ = ~held & (np.einsum("ij,ij->i", vt, active.slip) <= 0.0)
+    to_hold = reversed_ & free
+    slow = ~held & ~reversed_ & (speed <= eps)
+    keep = ~held & ~reversed_ & ~slow
+    move = to_slide | keep
+    active.slip[move] = vt[move] / speed[move, None]
+    active.speed[move] = speed[move]
+    stop = to_hold | slow
+    active.slip[stop] = 0.0
+    active.speed[stop] = 0.0
+    active.stick = (held & ~to_slide) | stop
+    changed = to_slide | to_hold
+    # A new contact had no friction in the solve that found its normal force: it is solved again as it slides,
+    # and may change once more in the step (its kinetic force may reverse it there: it is then held).
+    first = was_new & to_slide
+    switched[active.idx[changed & ~first]] = True
+    return changed
+
+
+def stop_reversed_smooth(active: Planes, cons: Constraints, after: Any) -> None:
+    """Contacts whose kinetic friction the last solve reversed (it pushed along the motion) stop their
+    tangential motion relative to the obstacle (velocities only: it only takes energy away) and are held."""
+    if not cons.n_contacts or not np.any(cons.friction):
+        return
+    rel_t = tangential(after.v, cons)
+    back = np.einsum("ij,ij->i", rel_t, cons.friction) > 0
+    if not np.any(back):
+        return
+    after.v[cons.contact[back]] -= rel_t[back]
+    pos = np.full(len(after.v), -1, dtype=np.int64)
+    pos[active.idx] = np.arange(len(active))
+    r = pos[cons.contact[back]]
+    r = r[r >= 0]
+    active.stick[r] = True
+    active.slip[r] = 0.0
+    active.speed[r] = 0.0

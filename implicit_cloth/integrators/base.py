@@ -149,9 +149,26 @@ class ImplicitIntegrator(Integrator):
         self._mass3 = np.repeat(model.masses, 3)
         self._pins = Constraints.of_pins(model)
         self._lin: _Linearization | None = None
+        #: the contacts' friction damping (N,) the system matrix holds on top of its assembly (None: none)
+        self._held_damping: tuple[np.ndarray, np.ndarray] | None = None
 
     def reset(self) -> None:
         self._lin = None
+
+    def _hold_damping(self, c: Constraints, c_v: float) -> None:
+        """Make the system matrix hold ``c_v`` times the contacts' friction damping blocks on its diagonal (and
+        no earlier contacts'), then finalize it."""
+        want = (c.contact, c_v * c.damping) if c.n_contacts and c.damped else None
+        have = self._held_damping
+        if want is None and have is None:
+            return
+        sysm = self.model.system
+        if have is not None:
+            np.subtract.at(sysm.blocks, sysm.diag_index[have[0]], have[1])
+        if want is not None:
+            np.add.at(sysm.blocks, sysm.diag_index[want[0]], want[1])
+        sysm.finalize()
+        self._held_damping = want
 
     def _scheme(self, state: State, h: float, info: StepInfo) -> Scheme:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -168,12 +185,17 @@ class ImplicitIntegrator(Integrator):
         lin = self._lin
         if lin is None or lin.state is not state or lin.h != h or lin.version != sysm.version:
             scheme = self._scheme(state, h, info)              # assembles and finalizes
+            self._held_damping = None
             lin = self._lin = _Linearization(state, h, scheme, sysm.version)
         scheme = lin.scheme
+        self._hold_damping(c, scheme.c_v)
+        lin.version = sysm.version
         b = scheme.b
-        if c.n_contacts and np.any(c.friction):
+        if c.n_contacts and (np.any(c.friction) or c.damped):
             b = b.copy()
             b[c.contact] += scheme.c_v * c.friction
+            if c.damped:     # the damping force is linear in v: c_v F(v0 + dv) = c_v F(v0) - c_v d dv
+                b[c.contact] += scheme.c_v * c.damping_force(state.v)
         return scheme, sysm.csr, b
 
     def step(self, state: State, h: float, constraints: Constraints | None = None,
@@ -234,6 +256,8 @@ class ImplicitIntegrator(Integrator):
         f = self.model.forces(x, v, t)
         if c.n_contacts:
             f[c.contact] += c.friction
+            if c.damped:
+                f[c.contact] += c.damping_force(v)
         return f
 
     def _conservative(self, x: np.ndarray, t: float) -> tuple[float, np.ndarray]:
@@ -275,8 +299,12 @@ class ImplicitIntegrator(Integrator):
         for _ in range(iterations):
             x = scheme.x_pred + cv * v
             A, f, _ = self._linearize(x, v, t1, scheme.c_x, cv, None, info)
+            self._held_damping = None
             if c.n_contacts:
                 f[c.contact] += c.friction
+                if c.damped:
+                    f[c.contact] += c.damping_force(v)
+                    self._hold_damping(c, cv)
             self._lin = None          # the matrix no longer holds the step's first linearisation
             R = M * (v - scheme.v_hat) - cv * f
             R_free = filt.apply(R.copy().reshape(-1))
