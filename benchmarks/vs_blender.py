@@ -40,7 +40,7 @@ FPS = 60
 SIZES = {"hanging": [32, 64, 128, 256], "drape": [32, 64, 128]}
 
 
-def scene(kind: str, n: int, fixed: bool = False) -> dict:
+def scene(kind: str, n: int, fixed: bool = False, friction_speed: float = 0.0) -> dict:
     """The benchmark scene as an implicit_cloth scene table (see the module docstring)."""
     springs = {"structural": {"stiffness": 1000.0, "damping": 0.01},
                "shear": {"stiffness": 1000.0 / 3.0, "damping": 0.01},
@@ -53,12 +53,15 @@ def scene(kind: str, n: int, fixed: bool = False) -> dict:
     if kind == "drape":
         d["obstacles"] = [{"shape": "sphere", "radius": 0.3, "center": [0.0, 0.0, 0.0], "friction": 0.3}]
         d["collision"] = {"thickness": 0.005}
+        if friction_speed > 0:
+            d["collision"]["friction_speed"] = friction_speed
     if fixed:
         d["simulation"]["adaptive"] = {"enabled": False}
     return d
 
 
-def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: int | None) -> dict:
+def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: int | None,
+             friction_speed: float = 0.0) -> dict:
     """One run of ours in this process (the worker): the RESULT record."""
     import numpy as np
 
@@ -69,7 +72,7 @@ def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: i
     if threads is not None:
         backend.set_threads(threads)
     solver = {"tolerance": tolerance} if tolerance else None
-    sim = ic.Simulator(ic.Scene.from_dict(scene(kind, n, fixed)), solver=solver)
+    sim = ic.Simulator(ic.Scene.from_dict(scene(kind, n, fixed, friction_speed)), solver=solver)
     frames = 120
     sim.step(1)                                   # the first frame: kernels loaded from numba's cache
     its = solves = 0
@@ -88,7 +91,7 @@ def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: i
     x = sim.positions
     timed = frames - 1
     return {"peer": f"implicit_cloth-{ic.__version__}", "scene": kind, "n": n, "frames": timed,
-            "fixed_steps": fixed, "tolerance": sim.integrator.tolerance, "threads": backend.threads(),
+            "fixed_steps": fixed, "friction_speed": friction_speed, "tolerance": sim.integrator.tolerance, "threads": backend.threads(),
             "accelerator": getattr(sim.integrator.precond, "accelerator", "numpy"),
             "wall_s": wall, "ms_per_frame": 1e3 * wall / timed, "iterations_per_frame": its / timed,
             "solves_per_frame": solves / timed, "zmin": float(x[:, 2].min()),
@@ -111,6 +114,8 @@ def ours(kind: str, n: int, a: argparse.Namespace) -> dict:
         cmd += ["--tolerance", str(a.tolerance)]
     if a.threads:
         cmd += ["--threads", str(a.threads)]
+    if a.friction_speed:
+        cmd += ["--friction-speed", str(a.friction_speed)]
     return _result(subprocess.run(cmd, capture_output=True, text=True, timeout=a.timeout))
 
 
@@ -124,7 +129,9 @@ def markdown(res: dict) -> str:
     mode = "fixed steps (one per frame)" if res["fixed"] else "default step control (adaptive)"
     out = [f"ms per 1/60 s frame, median of {res['pairs']} alternating pairs; ours: tolerance "
            f"{res['tolerance'] or 1e-3:g}, {mode}, {res['threads'] or 1} solver thread(s); Blender "
-           f"{res['blender_version']}, one thread, CG capped at 100 iterations / 1e-2 residual.", "",
+           f"{res['blender_version']}, one thread, CG capped at 100 iterations / 1e-2 residual."
+           + (f" Ours with smoothed friction, `collision.friction_speed = {res['friction_speed']:g}` m/s."
+              if res.get("friction_speed") else ""), "",
            "| scene | grid | ours (ms/frame) | Blender (ms/frame) | ratio ours / Blender | ours: CG its / frame | "
            "ours: solves / frame | ours: rms speed at the end (m/s) | Blender: rms speed (m/s) |",
            "|---|---|---|---|---|---|---|---|---|"]
@@ -144,11 +151,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tolerance", type=float, default=None, help="ours: solver tolerance (default 1e-3)")
     p.add_argument("--threads", type=int, default=None, help="ours: solver threads (default: the library's)")
     p.add_argument("--timeout", type=float, default=3600.0, help="s per run")
+    p.add_argument("--friction-speed", type=float, default=0.0, metavar="EPS",
+                   help="ours, drape: collision.friction_speed, m/s (smoothed friction; default 0: Coulomb's states)")
     p.add_argument("--out", default=str(HERE / "results"))
+    p.add_argument("--name", default="vs_blender", help="output file stem (default vs_blender)")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
-        print("RESULT " + json.dumps(run_ours(a.scenes[0], a.sizes[0], a.fixed, a.tolerance, a.threads)))
+        print("RESULT " + json.dumps(run_ours(a.scenes[0], a.sizes[0], a.fixed, a.tolerance, a.threads,
+                                              a.friction_speed)))
         return 0
     exe = shutil.which("blender")
     if exe is None:
@@ -174,12 +185,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{kind} {n}²: ours {row['ours_ms']:.1f} ms/frame, Blender {row['blender_ms']:.1f} ms/frame, "
                   f"ratio {row['ratio']:.2f}", flush=True)
     res = {"benchmark": "vs_blender", "pairs": a.pairs, "fixed": a.fixed, "tolerance": a.tolerance,
-           "threads": a.threads, "blender_version": version, "rows": rows}
+           "threads": a.threads, "friction_speed": a.friction_speed, "blender_version": version, "rows": rows}
     from _common import machine, write_outputs
 
     res["machine"] = machine()
     md = markdown(res)
-    write_outputs(Path(a.out), "vs_blender", res, md)
+    write_outputs(Path(a.out), a.name, res, md)
     print(md)
     return 0
 
