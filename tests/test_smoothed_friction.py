@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_collision import TH, cloth_scene
+from test_contact_energy import MASS, G, assert_resting_on_the_sphere, drop_scene, inside_depth, judged_run
 
 import implicit_cloth as ic
-from test_collision import TH, cloth_scene
-from test_contact_energy import MASS, G, drop_scene, inside_depth, judged_run
 
 EPS = 1e-4          # m/s
 
@@ -107,14 +107,7 @@ def test_a_drape_with_smoothed_friction_comes_to_rest_on_the_sphere():
     and then, with Coulomb's states too, at other times.)"""
     scene = drop_scene("sphere", n=32, dt=1 / 30, duration=4.0)
     scene["collision"]["friction_speed"] = EPS
-    sim, traj, e0, frames = judged_run(scene)
-    assert max(e for _, e, _ in frames) - e0 <= 0.0
-    speed = np.linalg.norm(sim.velocities, axis=1)
-    assert np.sqrt(np.mean(speed**2)) < 2e-3
-    on = np.linalg.norm(sim.positions, axis=1) < 0.3 + 2 * TH
-    assert on.sum() > 50 and speed[on].max() < 1e-3
-    assert sim.positions[:, 2].max() == pytest.approx(0.3 + TH, abs=2e-3)
-    assert traj.report["status"] == "ok" and traj.report["adaptive"]["substeps_per_step"] <= 2.0
+    assert_resting_on_the_sphere(*judged_run(scene))
 
 
 def test_moving_obstacle_work_with_smoothed_friction_is_counted():
