@@ -149,7 +149,8 @@ class ImplicitIntegrator(Integrator):
         self._mass3 = np.repeat(model.masses, 3)
         self._pins = Constraints.of_pins(model)
         self._lin: _Linearization | None = None
-        #: the contacts' friction damping (N,) the system matrix holds on top of its assembly (None: none)
+        #: (contact vertices, c_v times their friction damping blocks) the system matrix holds on top of its
+        #: assembly (smoothed friction; None: none)
         self._held_damping: tuple[np.ndarray, np.ndarray] | None = None
 
     def reset(self) -> None:
