@@ -342,30 +342,37 @@ def _random_motion(n=400, seed=5):
     return x0, x1, faces, edges
 
 
-def test_the_searches_and_impact_tests_in_pieces_give_the_same_pairs_and_times(monkeypatch):
-    """Large boxes are tested against all boxes, and times of impact computed, a bounded piece at a time (a 128²
-    crumple's impact step otherwise took the machine's 24 GB): in small pieces, the same pairs in the same
-    order and the same times and normals, bit for bit."""
+def test_the_impact_tests_in_pieces_give_the_same_times_and_the_search_finds_every_overlap(monkeypatch):
+    """Times of impact are computed a bounded piece at a time (a 128² crumple's impact step otherwise took the
+    machine's 24 GB): in small pieces, the same times and normals, bit for bit. The search in size classes,
+    with large boxes among them, finds exactly the overlapping boxes an all-pairs test written here finds."""
     from implicit_cloth.selfcontact import broadphase, response
 
     x0, x1, faces, edges = _random_motion()
-    whole = (broadphase.vertex_face_pairs(x0, x1, faces, 0.01), broadphase.edge_edge_pairs(x0, x1, edges, 0.01))
     pairs = response.Pairs.find(x0, x1, faces, edges, 0.01, np.ones(len(x0)))
     s, n = response.impacts(x0, x1, pairs.idx, pairs.vf, 1e-4, pairs.d0)
     assert np.isfinite(s).sum() > 10 and pairs.count > 1000
-    monkeypatch.setattr(broadphase, "BRUTE_PAIRS", 997)
     monkeypatch.setattr(response, "IMPACT_CHUNK", 101)
-    pieces = (broadphase.vertex_face_pairs(x0, x1, faces, 0.01), broadphase.edge_edge_pairs(x0, x1, edges, 0.01))
-    for a, b in zip(whole, pieces):
-        assert all(np.array_equal(p, q) for p, q in zip(a, b))
     s2, n2 = response.impacts(x0, x1, pairs.idx, pairs.vf, 1e-4, pairs.d0)
     assert np.array_equal(s, s2) and np.array_equal(n, n2)
     again = response.Pairs.find(x0, x1, faces, edges, 0.01, np.ones(len(x0)))
     assert np.array_equal(again.idx, pairs.idx) and np.array_equal(again.d0, pairs.d0)
-    # the large boxes were there (searched directly, in pieces)
-    lo, hi = broadphase.boxes(x0, x1, edges, 0.005)
-    h = (0.5 * (hi - lo)).max(axis=1)
-    assert np.sum(h > broadphase.LARGE * np.median(h)) >= 12
+
+    def all_pairs(lo_a, hi_a, lo_b, hi_b):       # every box against every box, in numpy
+        ov = np.all((lo_a[:, None] <= hi_b[None]) & (lo_b[None] <= hi_a[:, None]), axis=2)
+        return set(zip(*map(lambda t: t.tolist(), np.nonzero(ov))))
+
+    elo, ehi = broadphase.boxes(x0, x1, edges, 0.005)
+    h = (0.5 * (ehi - elo)).max(axis=1)
+    assert np.sum(h > 8 * np.median(h)) >= 12         # large boxes: several size classes above the median's
+    want = {(i, j) for i, j in all_pairs(elo, ehi, elo, ehi) if i < j}
+    got_i, got_j = broadphase.overlapping(elo, ehi, elo, ehi, same=True)
+    assert np.all(got_i < got_j) and len(got_i) == len(want) == len(set(zip(got_i.tolist(), got_j.tolist())))
+    assert set(zip(got_i.tolist(), got_j.tolist())) == want
+    vlo, vhi = broadphase.boxes(x0, x1, np.arange(len(x0))[:, None], 0.01)
+    flo, fhi = broadphase.boxes(x0, x1, faces, 0.0)
+    got_v, got_f = broadphase.overlapping(vlo, vhi, flo, fhi)
+    assert set(zip(got_v.tolist(), got_f.tolist())) == all_pairs(vlo, vhi, flo, fhi) and len(got_v) > 1000
 
 
 def test_the_search_of_a_cloth_moving_as_a_whole_keeps_every_pair_that_comes_near_and_few_others():

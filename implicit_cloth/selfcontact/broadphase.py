@@ -6,8 +6,10 @@ k-d tree over the boxes' centres (scipy's ``cKDTree.sparse_distance_matrix`` in 
 two boxes overlap only if their centres are within the sum of their half-extents along every axis, so the
 tree's radius is the sum of the two largest half-extents and an exact box test keeps the overlapping pairs.
 A few primitives much larger than the rest (a fast vertex, a stretched triangle) would make that radius and
-the tree's output large for every pair: boxes beyond ``LARGE`` times the median half-extent are tested
-against all boxes of the other kind directly (vectorised), the rest through the tree.
+the tree's output large for every pair, so boxes are searched in size classes (powers of two of the median
+half-extent), each class pair with the radius of its own two classes, as the obstacles' broad phase does. (An
+earlier version tested the boxes beyond four medians against every box directly: quadratic in an impact step
+with thousands of fast vertices, twice the time of the classes' search at 128².)
 
 Pairs of primitives that share a vertex (a vertex and a triangle it is a corner of, two edges with a common
 end) are never candidates. ``benchmarks/self_collision.py`` measured this against ipctk's LBVH, hash grid and
@@ -18,13 +20,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
-
-#: Boxes with a half-extent beyond this multiple of the median are searched directly, not through the tree.
-LARGE = 4.0
-#: Most pairs the direct search of the large boxes holds at once (it goes through them in pieces): in a 128²
-#: crumple's impact step thousands of boxes are large, and testing all of them against all boxes at once
-#: took the 24 GB of the machine.
-BRUTE_PAIRS = 4_000_000
 
 
 def boxes(x0: np.ndarray, x1: np.ndarray, prims: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
@@ -37,21 +32,18 @@ def boxes(x0: np.ndarray, x1: np.ndarray, prims: np.ndarray, reach: float) -> tu
 
 
 def _classes(h: np.ndarray, med: float) -> np.ndarray:
-    """Size class of each box: 0 up to the median half-extent, k up to ``2^k`` medians, -1 beyond ``LARGE``."""
+    """Size class of each box: 0 up to the median half-extent, k up to ``2^k`` medians."""
     with np.errstate(divide="ignore"):
         c = np.ceil(np.log2(np.maximum(h, 1e-300) / med))
-    c = np.clip(c, 0, None).astype(np.int64)
-    c[h > LARGE * med] = -1
-    return c
+    return np.clip(c, 0, None).astype(np.int64)
 
 
 def overlapping(alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi: np.ndarray,
                 same: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs ``(i, j)`` of overlapping boxes ``a_i``, ``b_j`` (with ``same``: one set, ``i < j``).
 
-    Boxes are split into size classes (half-extent up to 1, 2, 4 medians) so that each k-d tree search uses
-    the radius of its own two classes, not of the largest box; boxes beyond ``LARGE`` medians are tested
-    against all boxes directly.
+    Boxes are split into size classes (half-extent up to 1, 2, 4, ... medians) so that each k-d tree search
+    uses the radius of its own two classes, not of the largest box.
     """
     empty = np.zeros(0, dtype=np.int64)
     if not len(alo) or not len(blo):
@@ -61,8 +53,8 @@ def overlapping(alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi: np.ndarr
     med = max(float(np.median(np.concatenate([ha, hb]) if not same else ha)), 1e-300)
     ka, kb = _classes(ha, med), (_classes(hb, med) if not same else None)
     kb_ = ka if kb is None else kb
-    groups_a = {int(k): np.flatnonzero(ka == k) for k in np.unique(ka) if k >= 0}
-    groups_b = groups_a if same else {int(k): np.flatnonzero(kb_ == k) for k in np.unique(kb_) if k >= 0}
+    groups_a = {int(k): np.flatnonzero(ka == k) for k in np.unique(ka)}
+    groups_b = groups_a if same else {int(k): np.flatnonzero(kb_ == k) for k in np.unique(kb_)}
     trees_a = {k: cKDTree(ca[g]) for k, g in groups_a.items()}
     trees_b = trees_a if same else {k: cKDTree(cb[g]) for k, g in groups_b.items()}
     out_i, out_j = [], []
@@ -77,34 +69,14 @@ def overlapping(alo: np.ndarray, ahi: np.ndarray, blo: np.ndarray, bhi: np.ndarr
             else:
                 d = trees_a[p].sparse_distance_matrix(trees_b[q], r, p=np.inf, output_type="ndarray")
                 i, j = ga[d["i"]], gb[d["j"]]
+                if same:                      # one set, two classes: each pair as (min, max)
+                    i, j = np.minimum(i, j), np.maximum(i, j)
             out_i.append(i)
             out_j.append(j)
-    big_a = np.flatnonzero(ka < 0)
-    big_b = np.flatnonzero(kb_ < 0) if not same else empty
     cols = [tuple(np.ascontiguousarray(c[:, axis]) for c in (alo, ahi, blo, bhi)) for axis in range(3)]
     i = np.concatenate(out_i) if out_i else empty
     j = np.concatenate(out_j) if out_j else empty
-    i, j = _keep_overlapping(i, j, cols)
-    out_i, out_j = [i], [j]
-    if len(big_a):                            # large boxes of a against every box of b, a chunk at a time
-        for ch in _chunks(big_a, len(hb)):
-            gi, gj = np.repeat(ch, len(hb)), np.tile(np.arange(len(hb)), len(ch))
-            if same:                          # one set: each pair once, as (min, max)
-                keep = (gi != gj) & ((ka[gj] >= 0) | (gi < gj))
-                gi, gj = np.minimum(gi[keep], gj[keep]), np.maximum(gi[keep], gj[keep])
-            gi, gj = _keep_overlapping(gi, gj, cols)
-            out_i.append(gi)
-            out_j.append(gj)
-    if len(big_b):                            # large boxes of b against the other boxes of a
-        small = np.flatnonzero(ka >= 0)
-        for ch in _chunks(big_b, len(small)):
-            gi, gj = np.tile(small, len(ch)), np.repeat(ch, len(small))
-            gi, gj = _keep_overlapping(gi, gj, cols)
-            out_i.append(gi)
-            out_j.append(gj)
-    i = np.concatenate(out_i)
-    j = np.concatenate(out_j)
-    return i, j
+    return _keep_overlapping(i, j, cols)
 
 
 def _keep_overlapping(i: np.ndarray, j: np.ndarray, cols: list[tuple[np.ndarray, ...]]
@@ -115,13 +87,6 @@ def _keep_overlapping(i: np.ndarray, j: np.ndarray, cols: list[tuple[np.ndarray,
         keep = (al[i] <= bh[j]) & (bl[j] <= ah[i])
         i, j = i[keep], j[keep]
     return i, j
-
-
-def _chunks(big: np.ndarray, width: int) -> list[np.ndarray]:
-    """``big`` cut into pieces of at most ``BRUTE_PAIRS // width`` boxes (at least one), so that testing a piece
-    against ``width`` boxes holds at most about BRUTE_PAIRS pairs in memory at once."""
-    step = max(1, BRUTE_PAIRS // max(width, 1))
-    return [big[k:k + step] for k in range(0, len(big), step)]
 
 
 def vertex_face_pairs(x0: np.ndarray, x1: np.ndarray, faces: np.ndarray, reach: float,
