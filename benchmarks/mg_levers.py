@@ -24,7 +24,16 @@ matrices of the filtered fine matrix ``S A S + (I - S)``, dense Cholesky at the 
   V-cycle cut to 3 / 4 levels, sparse LU at the coarsest; its triangular solves counted as work);
 * ``sa_rigid``: pyamg's smoothed aggregation of ``S A S + (I - S)`` (3x3 blocks) with the six rigid motions at the
   step's positions as near-null space, its default V-cycle (symmetric block Gauss-Seidel) as preconditioner;
-  its setup is pyamg's, per system.
+  its setup is pyamg's, per system;
+* ``K``, ``K2``, ``K_gs``: the K-cycle (Notay & Vassilevski 2008, as in Notay's AGMG): on every coarse level but
+  the coarsest, the coarse correction is one or two iterations of flexible CG (FCG(1)) on that level's Galerkin
+  matrix, preconditioned by that level's cycle (smoothing around the next level's K-cycle correction); ``K``
+  skips the second iteration when the first left ``|r1| <= 0.25 |r0|`` (Notay's threshold), ``K2`` never skips,
+  ``K_gs`` is ``K`` with the Gauss-Seidel smoother. The inner FCG's products with its level's matrix count as
+  work. A K-cycle is not a fixed linear operator, so these variants run the outer solve with ``flexible_pcg``
+  (the library's numpy loop with the FCG(1) / Polak-Ribiere beta, same filter, bound and error estimate);
+  ``jacobi_f`` is ``jacobi`` through that flexible outer CG (the fair reference: with a fixed preconditioner it
+  is PCG in exact arithmetic).
 
 Work: every product with a level's matrix (CG's own products, residuals, smoothing sweeps, a colour's rows) is
 counted at its share of the fine level's stored entries, so "work" is in fine-level SpMVs; block-diagonal
@@ -36,6 +45,7 @@ Usage::
 
     python benchmarks/mg_levers.py --sizes 32 64 128 256 --out benchmarks/results
     python benchmarks/mg_levers.py --sizes 32 64 --variants jacobi gs --steps 1 10
+    python benchmarks/mg_levers.py --variants jacobi jacobi_f K K2 K_gs --out /tmp/kcycle_run
 
 Writes ``OUT/mg_levers.{json,md}`` (``--merge`` rebuilds them from earlier runs' JSON; the notes below the table in
 ``benchmarks/results/mg_levers.md`` are hand-written). Never asserts.
@@ -58,7 +68,7 @@ from solver_choice import _bdiag, _diag_blocks, chebyshev, direct, power_bound, 
 from implicit_cloth.solvers import make_preconditioner
 from implicit_cloth.solvers.blocks import inv3
 from implicit_cloth.solvers.multigrid import grid_prolongations
-from implicit_cloth.solvers.pcg import Filter, filtered_pcg
+from implicit_cloth.solvers.pcg import Filter, SolveResult, current_error_estimate, filtered_pcg
 
 H = 1 / 60
 
@@ -74,6 +84,9 @@ VARIANTS: dict[str, dict] = {
     "Wc": {"cycle": "Wc"}, "Wc_gs": {"cycle": "Wc", "smoother": "gs"},
     "cheb2_safe": {"smoother": "chebyshev", "degree": 2, "safe": True},
     "sa_rigid": {},
+    "jacobi_f": {"flexible": True},
+    "K": {"cycle": "K", "threshold": 0.25}, "K2": {"cycle": "K", "threshold": None},
+    "K_gs": {"cycle": "K", "threshold": 0.25, "smoother": "gs"},
 }
 
 
@@ -159,7 +172,8 @@ class VCycle:
 
     def __init__(self, A, filt: Filter, Ps: list, box: list, nu: int = 1, cycle: str = "V",
                  smoother: str = "jacobi", degree: int = 2, omega: float = 0.7, growth: int = 1,
-                 two_grid: bool = False, safe: bool = False, depth: int | None = None) -> None:
+                 two_grid: bool = False, safe: bool = False, depth: int | None = None,
+                 threshold: float | None = 0.25) -> None:
         t0 = time.perf_counter()
         S = _bdiag(filt.matrices())
         I3 = sp.identity(A.shape[0], format="csr")
@@ -190,6 +204,10 @@ class VCycle:
             chol = sla.cho_factor(As[-1].toarray())
             self.coarse = lambda r: sla.cho_solve(chol, r)
         self.growth = growth
+        #: K-cycle: skip the second inner FCG iteration when ``|r1| <= threshold |r0|`` (``None``: never skip);
+        #: ``kcount[l]``: how often level l's inner FCG took one / two iterations
+        self.threshold = threshold
+        self.kcount = [[0, 0] for _ in self.A]
         self.nu, self.cycle, self.smoother, self.degree, self.omega = nu, cycle, smoother, degree, omega
         self.lmax: list[float] = []
         self.setup_work = 0.0
@@ -242,10 +260,38 @@ class VCycle:
         if l == len(self.A) - 1:
             return self.coarse(b)
         x = self._smooth(l, b, None)
+        if self.cycle == "K":     # the coarse correction: two FCG iterations on level l + 1 (exact at the coarsest)
+            x = x + self.P[l] @ self._krylov(l + 1, self.P[l].T @ (b - self.A[l] @ x))
+            return self._smooth(l, b, x, backward=True)
         gamma = 2 if (self.cycle == "W" or (self.cycle == "Wc" and l > 0)) and l < len(self.A) - 2 else 1
         for _ in range(gamma):
             x = x + self.P[l] @ self._cycle(l + 1, self.P[l].T @ (b - self.A[l] @ x))
         return self._smooth(l, b, x, backward=True)
+
+    def _krylov(self, l: int, r: np.ndarray) -> np.ndarray:
+        """The K-cycle's coarse solve of ``A_l x = r`` (Notay & Vassilevski 2008, Algorithm 2.1): from x = 0, one
+        or two iterations of flexible CG (FCG(1): the second direction A-orthogonalised against the first)
+        preconditioned by level l's cycle; the exact solve at the coarsest level. Its products with ``A_l`` count."""
+        if l == len(self.A) - 1:
+            return self.coarse(r)
+        A = self.A[l]
+        c = self._cycle(l, r)
+        v = A @ c
+        rho1, alpha1 = float(c @ v), float(c @ r)
+        if rho1 <= 0.0:
+            raise ValueError(f"K-cycle: c^T A c = {rho1:.3e} <= 0 on level {l}")
+        r1 = r - (alpha1 / rho1) * v
+        if self.threshold is not None and np.linalg.norm(r1) <= self.threshold * np.linalg.norm(r):
+            self.kcount[l][0] += 1
+            return (alpha1 / rho1) * c
+        self.kcount[l][1] += 1
+        d = self._cycle(l, r1)
+        w = A @ d
+        gamma, beta, alpha2 = float(d @ v), float(d @ w), float(d @ r1)
+        rho2 = beta - gamma * gamma / rho1
+        if rho2 <= 0.0:          # d in the span of c (to round-off): the first iteration's answer
+            return (alpha1 / rho1) * c
+        return (alpha1 / rho1 - gamma * alpha2 / (rho1 * rho2)) * c + (alpha2 / rho2) * d
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         return self._cycle(0, r)
@@ -279,27 +325,102 @@ class SmoothedAggregation:
         return np.asarray(self.M @ r)
 
 
+def flexible_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: float = 1e-3,
+                 max_iterations: int = 1000, mass: np.ndarray | None = None, min_delay: int = 4,
+                 delay_fraction: float = 0.25, callback=None) -> tuple[np.ndarray, SolveResult]:
+    """The numpy loop of the library's ``filtered_pcg`` (no guess, ``rule="estimate"``) made flexible for a
+    preconditioner that is not a fixed linear operator (the K-cycle): FCG(1) (Notay 2000), i.e. CG with the
+    Polak-Ribiere beta ``s_new^T (r_new - r_old) / delta_old``, here written as the equivalent explicit
+    A-orthogonalisation of the new direction against the last one, ``beta = -s_new^T A p / p^T A p``, and the
+    step ``alpha = p^T r / p^T A p``. Same filter handling, same initial residual and round-off / breakdown
+    tests, the same guaranteed bound and error estimate (``ad_j = alpha_j p_j^T r_j``, the exact decrease of the
+    squared A-norm error of the line search; the Euclidean part assumes global A-orthogonality, which FCG(1) keeps
+    only locally). One product with ``A`` an iteration, as in PCG. With a fixed SPD preconditioner this is PCG
+    in exact arithmetic. ``callback(it, dv)``, if given, sees every iterate (for the oracle stop)."""
+    zc = z - filt.apply(z.copy())
+    dv = zc.copy()
+    r = filt.apply(b - A @ dv)
+    norm0 = float(np.linalg.norm(r))
+    if norm0 == 0.0:
+        return dv, SolveResult(0, 0.0, True)
+    s = filt.apply(precond.apply(r))
+    p = s.copy()
+    delta = float(r @ s)
+    delta0 = delta
+    ad = np.zeros(max_iterations)
+    pw = np.zeros(max_iterations)
+    inv_mass = None if mass is None else 1.0 / mass
+    converged, error, it = False, np.inf, 0
+    while not converged and delta > 0.0 and it < max_iterations:
+        q = filt.apply(A @ p)
+        pq = float(p @ q)
+        if pq <= 0.0:
+            break
+        pr = float(p @ r)
+        alpha = pr / pq
+        dv += alpha * p
+        r -= alpha * q
+        ad[it] = alpha * pr
+        pw[it] = float(p @ p) / pq
+        it += 1
+        if callback is not None:
+            callback(it, dv)
+        s = filt.apply(precond.apply(r))
+        delta_new = float(r @ s)
+        if delta_new < -1e-30 * delta0:
+            break
+        if delta_new <= 1e-30 * delta0:
+            converged, error = True, 0.0
+        else:
+            if inv_mass is not None:
+                error = np.sqrt(float(r @ (inv_mass * r)) / max(float(dv @ (mass * dv)), 1e-300))
+                converged = error <= tol
+            d = max(min_delay, int(delay_fraction * it))
+            if not converged and it >= d:
+                error = current_error_estimate(ad, pw, it, float(dv @ dv), d)
+                converged = error <= tol
+        if not converged:
+            beta = -float(s @ q) / pq
+            p *= beta
+            p += s
+        delta = delta_new
+    res = float(np.linalg.norm(filt.apply(b - A @ dv))) / norm0
+    return dv, SolveResult(it, res, converged, float(error))
+
+
 def solve_variants(sysd: dict, variants: list[str], tol: float) -> list[dict]:
     A, b, z, filt = sysd["A"], sysd["b"], sysd["z"], sysd["filt"]
     Ps = grid_prolongations(*sysd["grid"])
     t0 = time.perf_counter()
     ref = direct(A, b, z, filt)
     direct_s = time.perf_counter() - t0
+    nref = float(np.linalg.norm(ref))
     rows = []
     for name in variants:
         box = [0.0]
         try:
+            opts = dict(VARIANTS[name])
+            flexible = bool(opts.pop("flexible", False)) or opts.get("cycle") == "K"
             pc = (SmoothedAggregation(A, filt, sysd["x"], box) if name == "sa_rigid"
-                  else VCycle(A, filt, Ps, box, **VARIANTS[name]))
+                  else VCycle(A, filt, Ps, box, **opts))
             Ac = Counted(A, 1.0, box)
             t1 = time.perf_counter()
-            dv, res = filtered_pcg(Ac, b, z, filt, pc, tol, 2000, mass=sysd["mass3"], compiled=False)
+            errs: list[float] = []       # the true error of every iterate (flexible outer CG only)
+            if flexible:
+                dv, res = flexible_pcg(Ac, b, z, filt, pc, tol, 2000, mass=sysd["mass3"],
+                                       callback=lambda it, x, errs=errs, nref=nref: errs.append(
+                                           float(np.linalg.norm(x - ref)) / nref))
+            else:
+                dv, res = filtered_pcg(Ac, b, z, filt, pc, tol, 2000, mass=sysd["mass3"], compiled=False)
             solve_s = time.perf_counter() - t1
         except (ValueError, np.linalg.LinAlgError, sla.LinAlgError) as e:
             print(f"{sysd['n']:4d}² step {sysd['step']:3d} {name:9s} failed: {type(e).__name__}: {e}", flush=True)
             rows.append({"n": sysd["n"], "step": sysd["step"], "variant": name, "failed": f"{type(e).__name__}: {e}"})
             continue
         work = box[0]
+        #: the oracle stop: the first iterate within the tolerance (None: not recorded, or never)
+        oracle = next((i + 1 for i, e in enumerate(errs) if e <= tol), None)
+        kcount = [list(c) for c in pc.kcount] if isinstance(pc, VCycle) and pc.cycle == "K" else []
         rng = np.random.default_rng(1)       # is the preconditioner SPD on the free space? (r^T M r of filtered r)
         rmr = min(float(r @ pc.apply(r)) / float(r @ r) for r in (filt.apply(rng.standard_normal(len(b)))
                                                                     for _ in range(3)))
@@ -310,12 +431,15 @@ def solve_variants(sysd: dict, variants: list[str], tol: float) -> list[dict]:
                "work": work, "work_per_iteration": work / max(res.iterations, 1), "min_rMr": rmr,
                "setup_work": pc.setup_work, "setup_s": pc.setup_s, "solve_s": solve_s, "direct_s": direct_s,
                "pins_exact": exact, "library_iterations": sysd["library_iterations"],
-               "colours": pc.n_colours() if isinstance(pc, VCycle) else []}
+               "colours": pc.n_colours() if isinstance(pc, VCycle) else [], "flexible": flexible,
+               "k_inner": kcount, "estimate_at_stop": res.error, "oracle_iterations": oracle}
         rows.append(row)
-        print(f"{sysd['n']:4d}² step {sysd['step']:3d} {name:9s} its {res.iterations:4d} (library V {sysd['library_iterations']})"
+        print(f"{sysd['n']:4d}² step {sysd['step']:3d} {name:9s} its {res.iterations:4d} (library V {sysd['library_iterations']}"
+              f"{'' if oracle is None else f', oracle {oracle}'})"
               f"  true err {row['true_error']:.1e}{'' if rmr > 0 else ' (M INDEFINITE)'}  work {row['work']:6.1f} ({row['work_per_iteration']:.2f}/it"
               f" + setup {pc.setup_work:.0f})  setup {1e3 * pc.setup_s:.0f} ms  solve {1e3 * solve_s:.0f} ms"
-              + (f"  colours {row['colours']}" if row["colours"] else ""), flush=True)
+              + (f"  colours {row['colours']}" if row["colours"] else "")
+              + (f"  inner 1/2 its per level {kcount[1:-1]}" if kcount else ""), flush=True)
     return rows
 
 
@@ -335,6 +459,10 @@ def summary(rows: list[dict], sizes: list[int]) -> list[dict]:
                     "setup_ms": 1e3 * statistics.median(r["setup_s"] for r in q),
                     "ms_per_iteration": 1e3 * statistics.median(r["solve_s"] / max(r["iterations"], 1) for r in q),
                     "converged": all(r["converged"] for r in q), "pins_exact": all(r["pins_exact"] for r in q)}
+                if all(r.get("oracle_iterations") is not None for r in q):
+                    per[n]["oracle_iterations"] = [r["oracle_iterations"] for r in q]
+                    per[n]["max_error_over_estimate"] = max(r["true_error"] / max(r["estimate_at_stop"], 1e-300)
+                                                            for r in q)
         lo, hi = min(per, default=None), max(per, default=None)
         ratio = per[hi]["mean_iterations"] / per[lo]["mean_iterations"] if per and hi != lo else None
         out.append({"variant": v, "sizes": per, "ratio": ratio, "failed": len([r for r in rows if r["variant"] == v
@@ -370,6 +498,23 @@ def markdown(res: dict) -> str:
                    + f" | {big['work_per_iteration']:.2f} | {err:.1e} | {big['setup_ms']:.0f} | "
                    f"{big['ms_per_iteration']:.0f} |")
     out.append("")
+    orc = [s for s in res["summary"] if s["sizes"] and all("oracle_iterations" in q for q in s["sizes"].values())]
+    if orc:
+        out += ["Flexible outer CG only: the oracle stop (the first iterate whose true error is within the tolerance; "
+                "mean over the steps, each in brackets) and the stopping rule's read at its stop (largest true error "
+                "/ the estimate or bound it stopped on).", "",
+                "| variant | " + " | ".join(f"oracle its {n}²" for n in sizes) + f" | oracle ratio {hi}²/{lo}² | "
+                "max true error / estimate at stop |", "|---|" + "---|" * (len(sizes) + 2)]
+        for s in orc:
+            p = s["sizes"]
+            cells = [f"{statistics.mean(p[n]['oracle_iterations']):.1f} ({'/'.join(map(str, p[n]['oracle_iterations']))})"
+                     if n in p else "-" for n in sizes]
+            lo_, hi_ = min(p), max(p)
+            ratio = (f"{statistics.mean(p[hi_]['oracle_iterations']) / statistics.mean(p[lo_]['oracle_iterations']):.2f}"
+                     if hi_ != lo_ else "-")
+            worst = max(q["max_error_over_estimate"] for q in p.values())
+            out.append(f"| {s['variant']} | " + " | ".join(cells) + f" | {ratio} | {worst:.2f} |")
+        out.append("")
     return "\n".join(out)
 
 
