@@ -54,7 +54,7 @@ ADAPTIVE_DEFAULTS: dict[str, Any] = {"max_halvings": 5, "grow_after": 4, "max_st
 STRAIN_LIMIT_KEYS = ("max_strain", "iterations", "tethers", "max_compression")
 #: Most halvings of the step (dt / 2^30 is below a nanosecond for dt = 1 s).
 MAX_HALVINGS = 30
-SOLVER_KEYS = ("tolerance", "max_iterations", "preconditioner", "newton_iterations")
+SOLVER_KEYS = ("tolerance", "contact_tolerance", "max_iterations", "preconditioner", "newton_iterations")
 #: Most Newton iterations per step.
 MAX_NEWTON_ITERATIONS = 100
 CLOTH_KEYS = (
@@ -162,6 +162,9 @@ def _solver(d: Mapping[str, Any]) -> dict[str, Any]:
     out = dict(DEFAULTS["solver"])
     if "tolerance" in d:
         out["tolerance"] = number("solver.tolerance", d["tolerance"], lo=0.0, lo_open=True, hi=1.0)
+    if "contact_tolerance" in d:
+        out["contact_tolerance"] = number("solver.contact_tolerance", d["contact_tolerance"], lo=0.0, lo_open=True,
+                                          hi=1.0)
     if "max_iterations" in d:
         out["max_iterations"] = integer("solver.max_iterations", d["max_iterations"], lo=1,
                                          hi=MAX_SOLVER_ITERATIONS)

@@ -87,8 +87,8 @@ class Simulator:
     dt : float, optional
         Time step, s; overrides ``simulation.dt``.
     solver : mapping, optional
-        Overrides of the ``[solver]`` table (``tolerance``, ``max_iterations``,
-        ``preconditioner``).
+        Overrides of the ``[solver]`` table (``tolerance``, ``contact_tolerance``,
+        ``max_iterations``, ``preconditioner``, ``newton_iterations``).
     blas_threads : int or None, default 1
         BLAS threads used while stepping (``None`` leaves numpy's setting).
         One thread is faster here: the solver's dot products are short.
@@ -641,6 +641,7 @@ class _Recorder:
             n = max(tot["steps"], 1)
             report["solver"] = {
                 "tolerance": integ.tolerance,
+                "contact_tolerance": integ.contact_tolerance,
                 "max_iterations_allowed": integ.max_iterations,
                 "preconditioner": integ.precond.name,
                 # which implementation ran the preconditioned CG: "numba" (the fast extra) or "numpy"
@@ -657,7 +658,10 @@ class _Recorder:
             }
             if tot["unconverged_steps"]:
                 warnings.warn(
-                    f"the linear solver did not reach tolerance {integ.tolerance:g} in "
+                    f"the linear solver did not reach tolerance {integ.tolerance:g}"
+                    + (f" ({integ.contact_tolerance:g} in steps with contacts)"
+                       if integ.contact_tolerance < integ.tolerance
+                       and (sim.collider is not None or sim.self_collider is not None) else "") + " in "
                     f"{tot['unconverged_steps']} of {tot['steps']} steps (max residual "
                     f"{tot['max_residual']:.3g}); raise solver.max_iterations or reduce dt",
                     SolverWarning, stacklevel=4)

@@ -663,3 +663,31 @@ def test_moving_obstacle_work_is_counted_not_called_divergence():
     gained = e[-1] - e[0]
     assert gained > 0.1 * traj.report["divergence_bound"]["energy_scale"]   # the push is not negligible
     assert gained <= col["work"]
+
+
+@pytest.mark.parametrize("solver,expect", [({}, (1e-3, 1e-3)), ({"contact_tolerance": 1e-5}, (1e-3, 1e-5)),
+                                           ({"tolerance": 1e-6, "contact_tolerance": 1e-4}, (1e-6, 1e-6))])
+def test_the_solves_of_steps_with_contacts_use_the_contact_tolerance(solver, expect):
+    """A step's solves are at ``solver.tolerance`` until the cloth touches; every solve of a step with
+    contacts (the rounds, the carried resting contacts) at ``solver.contact_tolerance`` (default and at most
+    ``tolerance``): their impulses decide sticking and sliding. Newton's corrections keep their forcing."""
+    obstacle, center = DROPS["sphere"]
+    d = cloth_scene(obstacle, dt=1 / 30, duration=0.6, res=10, center=center)
+    d["solver"] = dict(solver)
+    sim = ic.Simulator(ic.Scene.from_dict(d))
+    integ = sim.integrator
+    assert (integ.tolerance, integ.contact_tolerance) == expect
+    seen = []
+    orig = integ._solve
+
+    def spy(A, b, z, filt, info, guess=None, tolerance=None):
+        seen.append((len(filt.partial) + len(filt.fixed) > 0, integ.tolerance if tolerance is None else tolerance))
+        return orig(A, b, z, filt, info, guess, tolerance)
+
+    integ._solve = spy
+    r = sim.run().report
+    assert r["solver"]["contact_tolerance"] == expect[1]
+    free = {t for c, t in seen if not c}
+    held = [t for c, t in seen if c]
+    assert free == {expect[0]} and len(held) > 10
+    assert set(held) <= {expect[1], max(expect[0], 0.1)} and held.count(expect[1]) > 10

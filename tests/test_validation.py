@@ -81,6 +81,8 @@ BAD_VALUES = [
     ("simulation.duration", 1e300, "simulation.duration: the run would take 1e+302 steps"),
     ("solver.tolerance", 0, "solver.tolerance: must be a finite number > 0 and <= 1, got 0"),
     ("solver.tolerance", "1e-3", "solver.tolerance: must be a finite number > 0 and <= 1, got '1e-3'"),
+    ("solver.contact_tolerance", 0.0, "solver.contact_tolerance: must be a finite number > 0 and <= 1, got 0.0"),
+    ("solver.contact_tolerance", 3, "solver.contact_tolerance: must be a finite number > 0 and <= 1, got 3"),
     ("solver.max_iterations", 0, "solver.max_iterations: must be an integer >= 1 and <= 1000000, got 0"),
     ("solver.max_iterations", 2.5, "solver.max_iterations: must be an integer >= 1 and <= 1000000, got 2.5"),
     ("solver.max_iterations", True, "solver.max_iterations: must be an integer >= 1 and <= 1000000, got True"),

@@ -142,6 +142,10 @@ class ImplicitIntegrator(Integrator):
 
         opts: dict[str, Any] = {**DEFAULTS["solver"], **(solver or {})}
         self.tolerance = float(opts["tolerance"])
+        #: the tolerance of the solves of a step with contacts (at most ``tolerance``; default ``tolerance``):
+        #: their impulses, ``A dv - b`` at the contacts, decide sticking and sliding (``[solver]
+        #: contact_tolerance``)
+        self.contact_tolerance = min(self.tolerance, float(opts.get("contact_tolerance", self.tolerance)))
         self.max_iterations = int(opts["max_iterations"])
         #: Newton iterations of a step (1: one linearisation, BW98); a caller may ask for more per step
         self.newton_iterations = int(opts["newton_iterations"])
@@ -231,7 +235,7 @@ class ImplicitIntegrator(Integrator):
             v1 = v + z + filt.apply((start - v - z).reshape(-1)).reshape(-1, 3)
             info.newton_iterations = 0
             return self._newton(state, h, c, scheme, v1, filt, max(iters, 1), info)
-        dv = self._solve(A, b, z, filt, info, guess)
+        dv = self._solve(A, b, z, filt, info, guess, self.contact_tolerance if c.n_contacts else None)
         if iters > 1 and np.all(np.isfinite(dv)):
             return self._newton(state, h, c, scheme, v + dv, filt, iters - 1, info)
         v1 = v + dv
