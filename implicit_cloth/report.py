@@ -105,6 +105,11 @@ class SolverReport(Record):
     threads: int = 1
     #: BLAS threads while stepping (``Simulator(blas_threads=...)``; None: not limited)
     blas_threads: int | None = 1
+    #: the tolerance of the solves of steps with contacts (``solver.contact_tolerance``; absent in reports
+    #: written before it existed)
+    contact_tolerance: float | None = None
+
+    OPTIONAL_KEYS: ClassVar[frozenset[str]] = frozenset({"contact_tolerance"})
 
 
 @dataclass
