@@ -25,6 +25,15 @@ matrices of the filtered fine matrix ``S A S + (I - S)``, dense Cholesky at the 
 * ``sa_rigid``: pyamg's smoothed aggregation of ``S A S + (I - S)`` (3x3 blocks) with the six rigid motions at the
   step's positions as near-null space, its default V-cycle (symmetric block Gauss-Seidel) as preconditioner;
   its setup is pyamg's, per system;
+* smoothed prolongations (``benchmarks/results/mg_levers_smoothed_p.md``): ``sp`` / ``sp_fine`` / ``sp2``:
+  ``P = (I - w D^-1 A_l) P0`` (smoothed aggregation's smoothing on the geometric ``P0``, ``w = 4 / (3 rho)`` from
+  a power estimate) on every level / the finest / the first two, untruncated; ``spr`` / ``spr_fine``: kept on
+  ``P0``'s block pattern (3x3 blocks); ``spr_sum`` (``_fine``, ``2``): the same with every fine vertex's block
+  row sum restored to ``P0``'s (the library's ``multigrid_smoothed``, there with ``w = 0.7``: ``spr_sum_w07``;
+  ``spr_sum_w05``, ``spr_sum_inf`` (``w`` from the bound ``||D^-1 A||_inf``), ``spr_sum_w07_raw`` (the finest
+  level smoothed with the unfiltered matrix)); ``spr_scalar``: a scalar smoothing of the block traces,
+  ``P kron I3`` kept. ``galerkin`` (printed) counts the scipy set-up's multiplications, ``block refresh`` those
+  of a fixed-pattern refresh with block prolongations, both in fine SpMVs;
 * ``K``, ``K2``, ``K_gs``: the K-cycle (Notay & Vassilevski 2008, as in Notay's AGMG): on every coarse level but
   the coarsest, the coarse correction is one or two iterations of flexible CG (FCG(1)) on that level's Galerkin
   matrix, preconditioned by that level's cycle (smoothing around the next level's K-cycle correction); ``K``
@@ -87,6 +96,14 @@ VARIANTS: dict[str, dict] = {
     "jacobi_f": {"flexible": True},
     "K": {"cycle": "K", "threshold": 0.25}, "K2": {"cycle": "K", "threshold": None},
     "K_gs": {"cycle": "K", "threshold": 0.25, "smoother": "gs"},
+    "sp": {"smooth_p": "all"}, "sp_fine": {"smooth_p": "fine"}, "sp2": {"smooth_p": "two"},
+    "spr": {"smooth_p": "all", "restrict_p": "pattern"}, "spr_sum": {"smooth_p": "all", "restrict_p": "sum"},
+    "spr_fine": {"smooth_p": "fine", "restrict_p": "pattern"},
+    "spr_sum_fine": {"smooth_p": "fine", "restrict_p": "sum"}, "spr_scalar": {"smooth_p": "all", "restrict_p": "scalar"},
+    "spr_sum_inf": {"smooth_p": "all", "restrict_p": "sum", "p_omega": "inf"},
+    "spr_sum_w05": {"smooth_p": "all", "restrict_p": "sum", "p_omega": 0.5},
+    "spr_sum_w07": {"smooth_p": "all", "restrict_p": "sum", "p_omega": 0.7},
+    "spr_sum_w07_raw": {"smooth_p": "all", "restrict_p": "sum", "p_omega": 0.7, "p_raw_fine": True}, "spr_sum2": {"smooth_p": "two", "restrict_p": "sum"},
 }
 
 
@@ -148,6 +165,27 @@ def _canonical(A) -> sp.csr_array:
     return A
 
 
+def spgemm_work(A, B) -> float:
+    """Multiplications of the sparse product ``A @ B``: for every stored ``a_ij`` the entries of row j of B."""
+    A, B = sp.csr_array(A), sp.csr_array(B)
+    return float(np.diff(B.indptr)[A.indices].sum())
+
+
+def block_refresh_work(Al, P) -> float:
+    """Multiplications of a fixed-pattern refresh with a block-valued prolongation on ``P``'s node pattern
+    (3x3 blocks): the restricted smoothing ``P[f, c] = P0[f, c] I - w D_f^-1 sum_j A[f, j] P0[j, c]`` (9 a term,
+    27 for ``D_f^-1``), the row-sum restoration (a 3x3 inverse and 27 a block) and the Galerkin sum
+    ``A_c[I, J] += P[i, I]^T A[i, j] P[j, J]`` over every pair of prolongation entries of every stored block
+    (54 a term; the scalar refresh takes 9)."""
+    G = sp.csr_array(sp.csr_array(Al)[::3, ::3] != 0, dtype=float)      # block pattern of the level
+    P = sp.csr_array(abs(P) > 0, dtype=float)
+    rowp = np.diff(P.indptr).astype(float)
+    G = sp.coo_array(G)
+    quads = float((rowp[G.row] * rowp[G.col]).sum())
+    smooth_terms = float((G @ P).multiply(P).sum()) if hasattr(G @ P, "multiply") else float(((G @ P) * P).sum())
+    return 54.0 * quads + 9.0 * smooth_terms + 27.0 * P.nnz + 27.0 * 2 * P.shape[0]
+
+
 def greedy_colours(A) -> np.ndarray:
     """A greedy colouring of the block graph of ``A`` (3x3 blocks): no two coupled vertices share a colour."""
     B = sp.csr_array(A)
@@ -170,10 +208,12 @@ def greedy_colours(A) -> np.ndarray:
 class VCycle:
     """The V-/W-cycle of the module docstring on the library's hierarchy, with a choice of smoother."""
 
-    def __init__(self, A, filt: Filter, Ps: list, box: list, nu: int = 1, cycle: str = "V",
+    def __init__(self, A, filt: Filter, Ps: list, box: list, nu: int = 1, cycle: str = "V",  # noqa: C901
                  smoother: str = "jacobi", degree: int = 2, omega: float = 0.7, growth: int = 1,
                  two_grid: bool = False, safe: bool = False, depth: int | None = None,
-                 threshold: float | None = 0.25) -> None:
+                 threshold: float | None = 0.25, smooth_p: str | None = None,
+                 restrict_p: str | None = None, p_omega: str | float | None = None,
+                 p_raw_fine: bool = False) -> None:
         t0 = time.perf_counter()
         S = _bdiag(filt.matrices())
         I3 = sp.identity(A.shape[0], format="csr")
@@ -181,11 +221,78 @@ class VCycle:
         self.P: list = []
         if two_grid:
             depth = 1
-        for P in Ps if depth is None else Ps[:depth]:
+        self.p_nnz: list[float] = []
+        #: the hierarchy's set-up in multiplications (the smoothing of P, its power estimate, the Galerkin triple
+        #: products), converted to fine-level SpMVs below
+        galerkin = 0.0
+        for li, P in enumerate(Ps if depth is None else Ps[:depth]):
             P3 = sp.csr_array(sp.kron(P, sp.identity(3), format="csr"))
+            if restrict_p == "scalar" and smooth_p == "all":
+                # scalar weights (P kron I3 kept): smooth the node-level P0 with the level's block traces / 3,
+                # restrict to P0's pattern, rows rescaled to sum 1
+                Al = sp.csr_array(As[-1])
+                nn = Al.shape[0] // 3
+                tr = sum(Al[a::3, a::3] for a in range(3)) / 3.0
+                tr = sp.csr_array(tr)
+                ds = tr.diagonal()
+                Ds = sp.diags(1.0 / ds)
+                v = np.random.default_rng(0).standard_normal(nn)
+                for _ in range(10):
+                    v = Ds @ (tr @ v)
+                    lam = float(np.linalg.norm(v))
+                    v /= lam
+                w = 4.0 / (3.0 * lam)
+                Ps_ = sp.csr_array(P - w * (Ds @ (tr @ P)))
+                mask = sp.csr_array((abs(P) > 0).astype(float))
+                Ps_ = sp.csr_array(Ps_ * mask)
+                rsum = np.asarray(Ps_.sum(axis=1)).ravel()
+                Ps_ = sp.csr_array(sp.diags(1.0 / rsum) @ Ps_)
+                P3 = sp.csr_array(sp.kron(Ps_, sp.identity(3), format="csr"))
+            elif smooth_p == "all" or (smooth_p == "fine" and li == 0) or (smooth_p == "two" and li < 2):
+                # smoothed prolongation (smoothed aggregation's P = (I - w D^-1 A) P0 on the geometric P0), with
+                # w = 4 / (3 rho(D^-1 A)) from a power estimate: interpolation that relaxes into the level's
+                # low-energy modes of the current (curved, wrinkled) configuration
+                Asm = _canonical(A) if (p_raw_fine and li == 0) else As[-1]   # raw: the unfiltered fine matrix
+                Dl = _bdiag(inv3(_diag_blocks(Asm)))
+                if p_omega is None:
+                    rho = power_bound(As[-1], Dl, 10) / 1.1
+                    galerkin += 10 * As[-1].nnz
+                elif p_omega == "inf":      # the guaranteed bound ||D^-1 A||_inf (one pass)
+                    rho = float(abs(Dl @ As[-1]).sum(axis=1).max())
+                    galerkin += As[-1].nnz
+                else:
+                    rho = 4.0 / (3.0 * float(p_omega))
+                w = 4.0 / (3.0 * rho)
+                self.p_rho = getattr(self, "p_rho", []) + [rho]
+                galerkin += spgemm_work(As[-1], P3) + 9 * P3.nnz
+                Psm = _canonical(P3 - w * (Dl @ (Asm @ P3)))
+                if restrict_p is not None:
+                    # keep the smoothed values only on the bilinear P0's block pattern (full 3x3 blocks), so that
+                    # the coarse matrices keep today's pattern; "sum": then restore each fine block row's sum to
+                    # the bilinear one (translations interpolated exactly)
+                    mask = sp.csr_array(sp.kron((abs(P) > 0).astype(float), np.ones((3, 3)), format="csr"))
+                    Pr = _canonical(Psm * mask)
+                    if restrict_p == "sum":
+                        # block row sums: (P 1_c)_f per 3x3; scale so the fine block row's sum equals P0's (I or 0)
+                        nf = Pr.shape[0] // 3
+                        E = sp.csr_array(sp.kron(np.ones((Pr.shape[1] // 3, 1)), np.eye(3), format="csr"))
+                        rs = (Pr @ E).toarray().reshape(nf, 3, 3)      # each fine vertex's summed block
+                        fix = np.linalg.inv(rs)                         # left-multiply the row's blocks by it
+                        Pr = _canonical(_bdiag(fix) @ Pr)
+                    galerkin += 2 * Pr.nnz
+                    self.block_refresh = getattr(self, "block_refresh", 0.0) + block_refresh_work(As[-1], P)
+                    Psm = Pr
+                P3 = Psm
+            self.p_nnz.append(P3.nnz / P3.shape[0])
             self.P.append(P3)
-            As.append(_canonical(P3.T @ As[-1] @ P3))
+            AP = As[-1] @ P3
+            galerkin += spgemm_work(As[-1], P3) + spgemm_work(P3.T, AP)
+            As.append(_canonical(P3.T @ AP))
         nnz0 = As[0].nnz
+        self.galerkin_work = galerkin / nnz0
+        if hasattr(self, "block_refresh"):      # the fixed-pattern refresh's cost, as a compiled one would do it
+            self.block_refresh /= nnz0
+        self.level_nnz = [Al.nnz / Al.shape[0] for Al in As]
         self.box = box
         self.A = [Counted(Al, Al.nnz / nnz0, box) for Al in As]
         self.Dblocks = [inv3(_diag_blocks(Al)) for Al in As[:-1]]
@@ -432,14 +539,19 @@ def solve_variants(sysd: dict, variants: list[str], tol: float) -> list[dict]:
                "setup_work": pc.setup_work, "setup_s": pc.setup_s, "solve_s": solve_s, "direct_s": direct_s,
                "pins_exact": exact, "library_iterations": sysd["library_iterations"],
                "colours": pc.n_colours() if isinstance(pc, VCycle) else [], "flexible": flexible,
-               "k_inner": kcount, "estimate_at_stop": res.error, "oracle_iterations": oracle}
+               "k_inner": kcount, "estimate_at_stop": res.error, "oracle_iterations": oracle,
+               "galerkin_work": getattr(pc, "galerkin_work", None), "block_refresh_work": getattr(pc, "block_refresh", None), "level_nnz_per_row": getattr(pc, "level_nnz", None)}
         rows.append(row)
         print(f"{sysd['n']:4d}² step {sysd['step']:3d} {name:9s} its {res.iterations:4d} (library V {sysd['library_iterations']}"
               f"{'' if oracle is None else f', oracle {oracle}'})"
               f"  true err {row['true_error']:.1e}{'' if rmr > 0 else ' (M INDEFINITE)'}  work {row['work']:6.1f} ({row['work_per_iteration']:.2f}/it"
               f" + setup {pc.setup_work:.0f})  setup {1e3 * pc.setup_s:.0f} ms  solve {1e3 * solve_s:.0f} ms"
               + (f"  colours {row['colours']}" if row["colours"] else "")
-              + (f"  inner 1/2 its per level {kcount[1:-1]}" if kcount else ""), flush=True)
+              + (f"  inner 1/2 its per level {kcount[1:-1]}" if kcount else "")
+              + (f"  rho {[round(x, 2) for x in getattr(pc, 'p_rho', [])]}" if isinstance(pc, VCycle) else "")
+              + (f"  block refresh {pc.block_refresh:.1f}" if hasattr(pc, "block_refresh") else "")
+              + (f"  galerkin {pc.galerkin_work:.1f}  nnz/row {[round(x) for x in pc.level_nnz]}"
+                 if isinstance(pc, VCycle) else ""), flush=True)
     return rows
 
 

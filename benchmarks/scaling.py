@@ -259,7 +259,7 @@ def _series(res: dict) -> list[tuple[str, str, str]]:
     """
     out = []
     for pc in res["preconditioners"]:
-        accs = res.get("accelerators", ["numpy"]) if pc == "multigrid" else ["numpy"]
+        accs = res.get("accelerators", ["numpy"]) if pc.startswith("multigrid") else ["numpy"]
         for m, acc in enumerate(accs):
             out.append((pc, acc, pc if m == 0 else f"{pc}/{acc}"))
     return out
@@ -443,7 +443,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128, 256])
     p.add_argument("--ks", type=float, nargs="+", default=[1e4, 1e3])
     p.add_argument("--preconditioners", nargs="+", default=["multigrid", "block_jacobi"],
-                   choices=["multigrid", "block_jacobi"])
+                   choices=["multigrid", "multigrid_smoothed", "block_jacobi"])
     p.add_argument("--accelerators", nargs="+", default=["auto"], choices=["auto", "numba", "numpy"],
                    help="multigrid implementations to time (auto: numba if installed); the first is the default "
                         "series, e.g. --accelerators numba numpy for the speed-up of the compiled path")
@@ -508,7 +508,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"k={k:g} {n:4d}² {pc:12s} skipped (--slow-max {a.slow_max})", flush=True)
                     continue
                 steps = a.slow_steps if (pc == "block_jacobi" and n >= 128) else a.steps
-                for acc in (accelerators if pc == "multigrid" else ["numpy"]):
+                for acc in (accelerators if pc.startswith("multigrid") else ["numpy"]):
                     r = time_steps(n, k, pc, state, steps, samples, ref0, acc)
                     rows.append(r)
                     err = f"{r['true_error_max']:.1e}" if r["true_error_max"] is not None else "-"

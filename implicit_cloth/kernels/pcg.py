@@ -290,18 +290,49 @@ def _transfer_row(ptr, idx, val, x, y, add, i):
         y[3 * i + 2] = y2
 
 
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _btransfer_row(ptr, idx, val, x, y, add, i):
+    """:func:`_transfer_row` for a block-valued ``M`` (9 numbers an entry: the smoothed prolongation)."""
+    y0 = 0.0
+    y1 = 0.0
+    y2 = 0.0
+    for m in range(ptr[i], ptr[i + 1]):
+        J = idx[m]
+        o = 9 * m
+        x0, x1, x2 = x[3 * J], x[3 * J + 1], x[3 * J + 2]
+        y0 += val[o] * x0 + val[o + 1] * x1 + val[o + 2] * x2
+        y1 += val[o + 3] * x0 + val[o + 4] * x1 + val[o + 5] * x2
+        y2 += val[o + 6] * x0 + val[o + 7] * x1 + val[o + 8] * x2
+    if add:
+        y[3 * i] += y0
+        y[3 * i + 1] += y1
+        y[3 * i + 2] += y2
+    else:
+        y[3 * i] = y0
+        y[3 * i + 1] = y1
+        y[3 * i + 2] = y2
+
+
 @njit(cache=True, fastmath={"contract"}, parallel=True)
 def _ptransfer(ptr, idx, val, x, y, add):
-    for i in prange(len(ptr) - 1):
-        _transfer_row(ptr, idx, val, x, y, add, i)
+    if len(val) == 9 * len(idx):
+        for i in prange(len(ptr) - 1):
+            _btransfer_row(ptr, idx, val, x, y, add, i)
+    else:
+        for i in prange(len(ptr) - 1):
+            _transfer_row(ptr, idx, val, x, y, add, i)
 
 
 @njit(cache=True, fastmath={"contract"})
 def _transfer(ptr, idx, val, x, y, add, par):
     """``y (+)= M x`` for a node-level CSR ``M`` (``P`` to prolong, ``P^T`` to restrict) acting on 3-vectors
-    (rows on threads with ``par``: the same numbers)."""
+    (rows on threads with ``par``: the same numbers); ``val`` holds a scalar an entry, or a 3x3 block an entry
+    (9 numbers: the smoothed prolongation, recognised by its length)."""
     if par:
         _ptransfer(ptr, idx, val, x, y, add)
+    elif len(val) == 9 * len(idx) and len(idx):
+        for i in range(len(ptr) - 1):
+            _btransfer_row(ptr, idx, val, x, y, add, i)
     else:
         for i in range(len(ptr) - 1):
             _transfer_row(ptr, idx, val, x, y, add, i)
@@ -454,7 +485,8 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
     (right-hand sides), ``wx`` (iterates) and ``wr`` (products, residuals, then smoothed
     iterates). The prolongation l -> l+1 has rows ``pptr[poff[l]:poff[l] + n_l + 1]``
     (local), entries ``pnnz[l]:pnnz[l+1]`` of ``pidx``/``pval``; its transpose likewise in
-    ``t*`` (rows ``toff[l]:toff[l] + n_{l+1} + 1``, the same entry range).
+    ``t*`` (rows ``toff[l]:toff[l] + n_{l+1} + 1``, the same entry range). With 9 values an entry in
+    ``pval``/``tval`` the transfers are 3x3 blocks (the smoothed prolongation; entry e at ``9 e``).
     ``dinv[voff[l]:voff[l+1]]`` are level l's inverted (filtered) diagonal blocks.
 
     Threads: level l's passes run on threads when ``lpar[l]`` (its products chunked as in
@@ -465,6 +497,7 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
     if L == 0:                                         # a single level: solved directly
         _coarse_solve(C, upper, b, out)
         return
+    blk = len(pval) == 9 * len(pidx)                   # block transfers (the smoothed prolongation)
     for l in range(L):
         nc = voff[l + 2] - voff[l + 1]
         bl = b if l == 0 else wb[3 * voff[l]:3 * voff[l + 1]]
@@ -473,7 +506,7 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
         d = dinv[voff[l]:voff[l + 1]]
         tp = tptr[toff[l]:toff[l] + nc + 1]
         ti = tidx[pnnz[l]:pnnz[l + 1]]
-        tv = tval[pnnz[l]:pnnz[l + 1]]
+        tv = tval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else tval[pnnz[l]:pnnz[l + 1]]
         par = bool(lpar[l])
         _presmooth(d, omega, bl, x, par)
         _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, r, lpar, lpv, lpb, pbb)
@@ -489,7 +522,7 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
         d = dinv[voff[l]:voff[l + 1]]
         pp = pptr[poff[l]:poff[l] + n + 1]
         pi = pidx[pnnz[l]:pnnz[l + 1]]
-        pv = pval[pnnz[l]:pnnz[l + 1]]
+        pv = pval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else pval[pnnz[l]:pnnz[l + 1]]
         par = bool(lpar[l])
         _transfer(pp, pi, pv, xc, x, True, par)
         _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, lpar, lpv, lpb, pbb)

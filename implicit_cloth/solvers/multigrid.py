@@ -122,6 +122,89 @@ class _Level:
         self.R3 = sp.csr_array(self.P3.T.tocsr())
 
 
+#: Damping ``w`` of the prolongation smoothing of ``"multigrid_smoothed"`` (:class:`SmoothedProlongation`): fixed,
+#: since a power estimate of the spectral radius of ``D^-1 A`` (1.8-2.6 on the stiff hanging cloth's levels,
+#: where ``4 / (3 rho)`` is 0.5-0.7) costs ten matrix passes a level a step and gave the same iterations
+#: (benchmarks/mg_levers.py, ``spr_sum`` against ``spr_sum_w07``).
+SMOOTH_P_OMEGA = 0.7
+
+
+class SmoothedProlongation:
+    """Build-time lists of one level's smoothed prolongation (the kernels' docstring,
+    :mod:`implicit_cloth.kernels.smoothed`): ``P[f, c] = F_f (P0[f, c] I - w D_f^-1 sum_j A[f, j] P0[j, c])``
+    on ``P0``'s node pattern, refreshed every step from the level's matrix.
+
+    For every entry ``e = (f, c)`` of ``P0`` (sorted CSR) its terms: the level's blocks ``(f, j)`` with
+    ``P0[j, c] != 0``, as a position in the level's block list (``t_blk``: the numpy path) and as a code into the
+    diagonal + upper storage of the compiled path (``t_code = 3 k + kind``: kind 0 diagonal block ``k``, 1 upper
+    block ``k``, 2 upper block ``k`` transposed), with the weight ``t_w = P0[j, c]``.
+    """
+
+    def __init__(self, system: SystemMatrix, P0: sp.csr_array, upper: np.ndarray) -> None:
+        P0 = sp.csr_array(P0, copy=True)
+        P0.sum_duplicates()
+        P0.sort_indices()
+        self.ptr = P0.indptr.astype(np.int64)
+        self.idx = P0.indices.astype(np.int64)
+        self.p0 = P0.data.astype(float)
+        nf, nc = P0.shape
+        self.shape = (nf, nc)
+        self.e_row = np.repeat(np.arange(nf), np.diff(self.ptr))
+        #: the row sums to restore: a translation is interpolated as by P0
+        self.target = np.bincount(self.e_row, weights=self.p0, minlength=nf)
+        br, bc = system.block_rows, system.block_cols
+        upos = np.full(system.n_blocks, -1, dtype=np.int64)
+        upos[upper] = np.arange(len(upper))
+        kind = np.where(br == bc, 0, np.where(br < bc, 1, 2))
+        lower = kind == 2
+        code_k = np.where(kind == 0, br, upos)
+        if lower.any():
+            code_k[lower] = upos[system.block_index(bc[lower], br[lower])]
+        cnt = self.ptr[bc + 1] - self.ptr[bc]
+        src = np.repeat(np.arange(system.n_blocks), cnt)
+        k = np.arange(len(src)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        m = self.ptr[bc[src]] + k                       # P0 entry (j, c)
+        f, c = br[src], self.idx[m]
+        keys = self.e_row * nc + self.idx               # sorted: CSR order
+        q = f * nc + c
+        pos = np.searchsorted(keys, q)
+        ok = pos < len(keys)
+        ok[ok] = keys[pos[ok]] == q[ok]
+        e = pos[ok]
+        order = np.argsort(e, kind="stable")
+        self.t_ptr = np.concatenate([[0], np.cumsum(np.bincount(e, minlength=len(keys)))]).astype(np.int64)
+        self.t_blk = src[ok][order].astype(np.int64)
+        self.t_code = (3 * code_k[self.t_blk] + kind[self.t_blk]).astype(np.int32)
+        self.t_w = np.ascontiguousarray(self.p0[m[ok][order]])
+        #: P^T's CSR order as positions in P's entries (the restriction's blocks are their transposes)
+        self.tperm = np.lexsort((self.e_row, self.idx)).astype(np.int64)
+
+    def blocks_numpy(self, blocks: np.ndarray, dinv: np.ndarray, omega: float) -> np.ndarray:
+        """The prolongation blocks (nnz, 3, 3) from a level's (filtered) block values and inverted diagonal
+        blocks: the numpy reference of :func:`implicit_cloth.kernels.smoothed.smooth_prolongation`."""
+        nnz = len(self.p0)
+        terms = self.t_w[:, None] * blocks[self.t_blk].reshape(-1, 9)
+        acc = np.zeros((nnz, 9))
+        np.add.at(acc, np.repeat(np.arange(nnz), np.diff(self.t_ptr)), terms)
+        Pt = self.p0[:, None, None] * np.eye(3) - omega * (dinv[self.e_row] @ acc.reshape(-1, 3, 3))
+        rs = np.zeros((self.shape[0], 3, 3))
+        np.add.at(rs, self.e_row, Pt)
+        det = np.linalg.det(rs)
+        scale = np.maximum(np.abs(np.diagonal(rs, axis1=1, axis2=2)).max(axis=1), 1e-300) ** 3
+        good = np.isfinite(det) & (np.abs(det) > 1e-12 * scale)
+        F = np.zeros_like(rs)
+        F[good] = self.target[good, None, None] * np.linalg.inv(rs[good])
+        P = F[self.e_row] @ Pt
+        bad = ~good[self.e_row]
+        P[bad] = self.p0[bad, None, None] * np.eye(3)
+        return P
+
+    def csr(self, pblocks: np.ndarray) -> sp.csr_array:
+        """The (3 n_f, 3 n_c) prolongation of the given blocks."""
+        nf, nc = self.shape
+        return sp.csr_array(sp.bsr_array((pblocks, self.idx, self.ptr), shape=(3 * nf, 3 * nc)).tocsr())
+
+
 class Multigrid:
     """V-cycle preconditioner over a fixed hierarchy (see module docstring).
 
@@ -135,23 +218,34 @@ class Multigrid:
         Damping of the block-Jacobi smoother (0 < omega <= 1).
     name : str
         Reported name.
+    smoothed : bool
+        Smooth the prolongations every step from the level matrices (:class:`SmoothedProlongation`;
+        ``solver.preconditioner = "multigrid_smoothed"``) instead of the fixed ``P kron I3``.
     """
 
     #: multigrid-preconditioned CG converges steadily: its error estimate is reliable
     stopping_rule = "estimate"
 
     def __init__(self, system: SystemMatrix, prolongations: list, omega: float = 0.7,
-                 name: str = "multigrid", accelerator: str | Backend | None = None) -> None:
+                 name: str = "multigrid", accelerator: str | Backend | None = None, smoothed: bool = False,
+                 p_omega: float = SMOOTH_P_OMEGA) -> None:
         self.name = name
         self.omega = float(omega)
+        self.smoothed = bool(smoothed)
+        self.p_omega = float(p_omega)
         self.fine = system
         #: the back-end: the system's (the model's) unless one is named; numba runs the packed hierarchy
         #: and the whole PCG compiled (:class:`_FusedHierarchy`), numpy the reference (:class:`_NumpyHierarchy`)
         self.backend = system.backend if accelerator is None else get_backend(accelerator)
         self.levels: list[_Level] = []
         cur = system
+        #: per level, with ``smoothed``: the smoothing's term lists (the level's upper blocks as the compiled
+        #: storage orders them) and the current blocks
+        self.sprol: list[SmoothedProlongation] = []
         for P in prolongations:
             lvl = _Level(cur, P)
+            if self.smoothed:
+                self.sprol.append(SmoothedProlongation(cur, P, np.flatnonzero(cur.block_rows < cur.block_cols)))
             self.levels.append(lvl)
             cur = lvl.system
         self._blocks: list[np.ndarray] = []
@@ -216,6 +310,9 @@ class _NumpyHierarchy:
     def __init__(self, mg: Multigrid) -> None:
         self.mg = mg
         self._D = [block_diagonal_operator(s.n) for s in mg._systems()]
+        #: the transfers: the fixed ``P kron I3``, or with ``smoothed`` the ones of the last setup
+        self.P3 = [lvl.P3 for lvl in mg.levels]
+        self.R3 = [lvl.R3 for lvl in mg.levels]
 
     def setup(self, filt: Filter) -> np.ndarray:
         """Refresh the levels; returns the coarsest matrix (dense) to factorise."""
@@ -227,7 +324,18 @@ class _NumpyHierarchy:
         systems = mg._systems()
         mg._A, mg._blocks = [], []
         for l, sm in enumerate(systems):
-            if l > 0:
+            if l > 0 and mg.smoothed:            # P from the level above's matrix, then P^T A P into the pattern
+                spl = mg.sprol[l - 1]
+                up = systems[l - 1]
+                P3 = spl.csr(spl.blocks_numpy(blocks, inv3(blocks[up.diag_index]), mg.p_omega))
+                self.P3[l - 1], self.R3[l - 1] = P3, sp.csr_array(P3.T.tocsr())
+                Cc = sp.coo_array(P3.T @ mg._A[-1] @ P3)
+                sm.reset()
+                kb = sm.block_index(Cc.row // 3, Cc.col // 3)
+                np.add.at(sm.blocks, (kb, Cc.row % 3, Cc.col % 3), Cc.data)
+                blocks = sm.blocks
+                A = sm.finalize()
+            elif l > 0:
                 sm.reset()
                 accumulate_product(mg.levels[l - 1].T, blocks.reshape(-1, 9), sm.blocks.reshape(-1, 9))
                 blocks = sm.blocks
@@ -248,9 +356,9 @@ class _NumpyHierarchy:
         mg = self.mg
         if l == len(mg.levels):
             return mg.coarse_solve(b)
-        A, D, lvl, w = mg._A[l], self._D[l], mg.levels[l], mg.omega
+        A, D, w = mg._A[l], self._D[l], mg.omega
         x = w * (D @ b)                                   # pre-smooth from x = 0
-        x += lvl.P3 @ self._vcycle(l + 1, lvl.R3 @ (b - A @ x))
+        x += self.P3[l] @ self._vcycle(l + 1, self.R3[l] @ (b - A @ x))
         x += w * (D @ (b - A @ x))                        # post-smooth
         return x
 
@@ -319,10 +427,13 @@ def _concat_csr(mats: list) -> tuple:
 
 
 def _galerkin_entries(fine: SystemMatrix, coarse: SystemMatrix, fine_up: np.ndarray, coarse_up: np.ndarray,
-                      P) -> tuple:
+                      P, entries: bool = False) -> tuple:
     """Entry lists of :func:`implicit_cloth.kernels.pcg.galerkin` for ``coarse = P^T fine P`` (``P kron I3``),
     both levels in
-    diagonal + upper-block storage (``*_up``: positions of the upper blocks in each level's block list)."""
+    diagonal + upper-block storage (``*_up``: positions of the upper blocks in each level's block list).
+    With ``entries``, each list also carries the two prolongation entries of every term (positions in ``P``'s
+    sorted CSR), for a block prolongation on ``P``'s pattern
+    (:func:`implicit_cloth.kernels.smoothed.galerkin_blocks`): ``(d_ptr, d_dst, d_w, d_pa, d_pb, u_...)``."""
     P = sp.csr_array(P)
     P.sort_indices()
     ptr, idx, val = P.indptr, P.indices, P.data
@@ -335,35 +446,37 @@ def _galerkin_entries(fine: SystemMatrix, coarse: SystemMatrix, fine_up: np.ndar
         src = np.repeat(np.arange(len(br)), per)
         k = np.arange(len(src)) - np.repeat(np.cumsum(per) - per, per)
         a, b = ptr[br[src]] + k // cc[src], ptr[bc[src]] + k % cc[src]
-        return src, idx[a].astype(np.int64), idx[b].astype(np.int64), val[a] * val[b]
+        return src, idx[a].astype(np.int64), idx[b].astype(np.int64), val[a] * val[b], a, b
 
     # diagonal blocks (i, i): pairs (I, J) of row i's entries with I <= J
     i = np.arange(fine.n)
-    src, I, J, w = expand(i, i)
+    src, I, J, w, ea, eb = expand(i, i)
     keep = I <= J
-    src, I, J, w = src[keep], I[keep], J[keep], w[keep]
+    src, I, J, w, ea, eb = src[keep], I[keep], J[keep], w[keep], ea[keep], eb[keep]
     todiag = I == J
     dst = np.where(todiag, I, upos[coarse.block_index(I, J)] if len(I) else I)
-    d = _packed_entries(src, fine.n, 4 * dst + 3 * todiag, w)
+    d = _packed_entries(src, fine.n, 4 * dst + 3 * todiag, w, (ea, eb) if entries else ())
     # upper blocks (i, j), i < j
-    src, I, J, w = expand(fine.block_rows[fine_up], fine.block_cols[fine_up])
+    src, I, J, w, ea, eb = expand(fine.block_rows[fine_up], fine.block_cols[fine_up])
     mode = np.where(I < J, 0, np.where(I > J, 1, 2))
     lo, hi = np.minimum(I, J), np.maximum(I, J)
     off = lo != hi
     dst = lo.copy()
     if off.any():
         dst[off] = upos[coarse.block_index(lo[off], hi[off])]
-    u = _packed_entries(src, len(fine_up), 4 * dst + mode, w)
+    u = _packed_entries(src, len(fine_up), 4 * dst + mode, w, (ea, eb) if entries else ())
     return d + u
 
 
-def _packed_entries(src: np.ndarray, n_src: int, code: np.ndarray, w: np.ndarray) -> tuple:
-    """Entries sorted by source block: (pointer per source, packed destination ``4 t + mode``, weight)."""
+def _packed_entries(src: np.ndarray, n_src: int, code: np.ndarray, w: np.ndarray, extra: tuple = ()) -> tuple:
+    """Entries sorted by source block: (pointer per source, packed destination ``4 t + mode``, weight, and any
+    ``extra`` per-entry arrays in the same order, as int32)."""
     if len(code) and (code.min() < 0 or code.max() >= 2**31):
         raise ValueError("Galerkin entry outside the coarse pattern")   # a bug, not a user error
     order = np.argsort(src, kind="stable")
     ptr = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=n_src))]).astype(np.int64)
-    return ptr, code[order].astype(np.int32), np.ascontiguousarray(w[order], dtype=float)
+    return (ptr, code[order].astype(np.int32), np.ascontiguousarray(w[order], dtype=float),
+            *(np.ascontiguousarray(x[order], dtype=np.int32) for x in extra))
 
 
 def _filtered_blocks(sm: SystemMatrix, blocks: np.ndarray, filt: Filter) -> np.ndarray:
@@ -520,8 +633,17 @@ class _FusedHierarchy:
         self.pnnz = np.cumsum([0] + [P.nnz for P in Ps]).astype(np.int64)
         # P^T as CSR: restriction as a gather (same entry ranges as P)
         self.tptr, self.tidx, self.tval, self.toff = _concat_csr([sp.csr_array(P.T) for P in Ps])
-        self._gal = [_galerkin_entries(systems[l], systems[l + 1], self._uidx[l], self._uidx[l + 1], P)
+        self._gal = [_galerkin_entries(systems[l], systems[l + 1], self._uidx[l], self._uidx[l + 1], P,
+                                       entries=mg.smoothed)
                      for l, P in enumerate(prolongations)]
+        if mg.smoothed:    # block transfers, refreshed every setup (9 numbers an entry; P^T's are transposes)
+            self.pval = np.zeros(9 * int(self.pnnz[-1]))
+            self.tval = np.zeros(9 * int(self.pnnz[-1]))
+            #: P^T's entries as positions in P's, all levels
+            self._tperm = np.concatenate([s_.tperm + self.pnnz[l] for l, s_ in enumerate(mg.sprol)]
+                                         ) if mg.sprol else np.zeros(0, dtype=np.int64)
+            self._empty_c = np.zeros(0, dtype=np.int64)
+            self._empty_S = np.zeros((0, 3, 3))
         self.dinv = np.zeros((int(self.voff[-1]), 3, 3), dtype=f)
         self.wb = np.zeros(3 * int(self.voff[-1]))
         self.wx = np.zeros(3 * int(self.voff[-1]))
@@ -597,17 +719,38 @@ class _FusedHierarchy:
             u0, u1, u2 = self.uoff[l - 1], self.uoff[l], self.uoff[l + 1]
             src_d, src_u = (self.adg, self.auv) if l == 1 else (self.dg[v0:v1], self.uv[u0:u1])
             gal = self._gal[l - 1]
-            args = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1), self.uv[u1:u2].reshape(-1),
-                    gal[0], gal[1], gal[2], gal[3], gal[4], gal[5])
-            _fused.galerkin(*args)
-            if l == 1 and len(c):     # the product of the filtered fine matrix S A S + (I - S)
+            if l == 1 and len(c):
                 cpos = np.full(n0, -1, dtype=np.int64)
                 cpos[c] = np.arange(len(c))
-                td = np.flatnonzero(cpos >= 0)
-                tu = np.flatnonzero((cpos[self.auI] >= 0) | (cpos[self.auJ] >= 0))
-                _fused.galerkin_filter(*args, cpos, Sc, self.auI, self.auJ, td, tu)
+            if mg.smoothed:           # the level's block prolongation from its current (filtered) matrix
+                from ..kernels import smoothed as _smoothed
+
+                spl = mg.sprol[l - 1]
+                pb = self.pval[9 * self.pnnz[l - 1]:9 * self.pnnz[l]]
+                filt_c = cpos if (l == 1 and len(c)) else self._empty_c
+                _smoothed.smooth_prolongation(
+                    src_d.reshape(-1), src_u.reshape(-1), self.dinv[v0:v1].reshape(-1), spl.ptr, spl.p0, spl.target,
+                    spl.t_ptr, spl.t_code, spl.t_w, self.uI[u0:u1], self.uJ[u0:u1], filt_c,
+                    Sc if len(filt_c) else self._empty_S, mg.p_omega, pb)
+                bargs = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
+                         self.uv[u1:u2].reshape(-1), gal[0], gal[1], gal[3], gal[4], gal[5], gal[6], gal[8], gal[9], pb)
+                _smoothed.galerkin_blocks(*bargs)
+                if l == 1 and len(c):
+                    td = np.flatnonzero(cpos >= 0)
+                    tu = np.flatnonzero((cpos[self.auI] >= 0) | (cpos[self.auJ] >= 0))
+                    _smoothed.galerkin_blocks_filter(*bargs, cpos, Sc, self.auI, self.auJ, td, tu)
+            else:
+                args = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
+                        self.uv[u1:u2].reshape(-1), gal[0], gal[1], gal[2], gal[3], gal[4], gal[5])
+                _fused.galerkin(*args)
+                if l == 1 and len(c):     # the product of the filtered fine matrix S A S + (I - S)
+                    td = np.flatnonzero(cpos >= 0)
+                    tu = np.flatnonzero((cpos[self.auI] >= 0) | (cpos[self.auJ] >= 0))
+                    _fused.galerkin_filter(*args, cpos, Sc, self.auI, self.auJ, td, tu)
             if l < L:
                 _fused.inv3(self.dg[v1:v2].reshape(-1), self.dinv[v1:v2].reshape(-1))
+        if mg.smoothed:               # the restrictions: P^T's blocks are P's transposed, in P^T's CSR order
+            self.tval.reshape(-1, 3, 3)[:] = self.pval.reshape(-1, 3, 3)[self._tperm].transpose(0, 2, 1)
         mg._A = [None] * (L + 1)
         return self.coarse_dense()
 
@@ -676,15 +819,17 @@ class _FusedHierarchy:
         return dv, SolveResult(int(it), float(res), bool(conv), float(err))
 
 
-def for_model(model, accelerator: str | None = None) -> Multigrid:
-    """The multigrid preconditioner suited to a model: geometric for grids, smoothed aggregation for meshes."""
+def for_model(model, accelerator: str | None = None, smoothed: bool = False) -> Multigrid:
+    """The multigrid preconditioner suited to a model: geometric for grids, smoothed aggregation for meshes;
+    with ``smoothed`` its prolongations are smoothed every step (``"multigrid_smoothed"``)."""
     geo = model.geometry
+    name = "multigrid_smoothed" if smoothed else "multigrid"
     if geo.grid_shape is not None:
-        return Multigrid(model.system, grid_prolongations(*geo.grid_shape), name="multigrid",
-                         accelerator=accelerator)
+        return Multigrid(model.system, grid_prolongations(*geo.grid_shape), name=name,
+                         accelerator=accelerator, smoothed=smoothed)
     edges = geo.springs.get("structural")
     if edges is None or not len(edges):
         f = model.faces
         edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    return Multigrid(model.system, aggregation_prolongations(model.n, edges), name="multigrid",
-                     accelerator=accelerator)
+    return Multigrid(model.system, aggregation_prolongations(model.n, edges), name=name,
+                     accelerator=accelerator, smoothed=smoothed)

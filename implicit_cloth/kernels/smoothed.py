@@ -1,0 +1,205 @@
+"""Compiled (numba) kernels of the smoothed-prolongation hierarchy (``solver.preconditioner =
+"multigrid_smoothed"``, :mod:`implicit_cloth.solvers.multigrid`): the per-step prolongation blocks and the
+Galerkin product with them.
+
+A level's prolongation keeps the node pattern of its geometric ``P0`` (bilinear on grids) but each entry is a
+3x3 block, refreshed every step from the level's current matrix ``A`` (the filtered one on the finest level):
+
+    P~[f, c] = P0[f, c] I - w D_f^-1 sum_j A[f, j] P0[j, c]       (only on P0's pattern)
+    P[f, c]  = F_f P~[f, c],   F_f = s_f (sum_c P~[f, c])^-1,   s_f = sum_c P0[f, c]
+
+(one damped-Jacobi smoothing of ``P0``, as smoothed aggregation does, restricted to ``P0``'s pattern so that
+the coarse matrices keep their pattern; ``F_f`` restores each fine vertex's block row sum, so a translation is
+still interpolated exactly). The blocks mix the three components, which the scalar ``P0 kron I3`` cannot: on a
+curved or wrinkled cloth the stiff (stretching) directions turn from vertex to vertex, and the coarse space
+follows them.
+
+Block arrays are flat, 9 numbers a block, row-major, as in :mod:`.pcg`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .pcg import _filtered_block
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _term_block(sd, su, code, Sc, cpos, f, uI, uJ, tmp, out):
+    """The block ``A[f, j]`` of a smoothing term: ``code = 3 k + kind`` with kind 0 the diagonal block ``k``,
+    1 the upper block ``k`` as stored, 2 the upper block ``k`` transposed (``j < f``); filtered
+    (``S_f A S_j + (I - S_f)`` on the diagonal) when ``cpos`` marks a constrained vertex."""
+    k = code // 3
+    kind = code - 3 * k
+    if kind == 0:
+        for m in range(9):
+            tmp[m] = sd[9 * k + m]
+        j = f
+    elif kind == 1:
+        for m in range(9):
+            tmp[m] = su[9 * k + m]
+        j = uJ[k]
+    else:
+        for a in range(3):
+            for b in range(3):
+                tmp[3 * a + b] = su[9 * k + 3 * b + a]
+        j = uI[k]
+    if len(cpos) and (cpos[f] >= 0 or cpos[j] >= 0):
+        _filtered_block(tmp, 0, Sc, cpos[f], cpos[j], kind == 0, out)
+    else:
+        for m in range(9):
+            out[m] = tmp[m]
+
+
+@njit(cache=True, fastmath={"contract"})
+def smooth_prolongation(sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, uJ, cpos, Sc, omega, out):  # noqa: C901
+    """The blocks ``P[f, c]`` of the module docstring, for every entry of ``P0`` (CSR ``ptr``, values ``p0``;
+    its entry ``e``'s terms ``t_ptr[e]:t_ptr[e+1]``: block codes ``t_code`` (see :func:`_term_block`) with
+    weights ``t_w = P0[j, c]``), from the level's diagonal (``sd``) and upper (``su``) blocks and its inverted
+    (filtered) diagonal blocks ``dinv``; ``cpos``/``Sc``: the finest level's filter (empty elsewhere).
+    Writes ``out`` (9 numbers an entry). A row whose block sum is singular keeps ``P0`` (times I)."""
+    B = np.empty(9)
+    acc = np.empty(9)
+    tmp = np.empty(9)
+    rs = np.empty(9)
+    F = np.empty(9)
+    for f in range(len(ptr) - 1):
+        for m in range(9):
+            rs[m] = 0.0
+        for e in range(ptr[f], ptr[f + 1]):
+            for m in range(9):
+                acc[m] = 0.0
+            for t in range(t_ptr[e], t_ptr[e + 1]):
+                _term_block(sd, su, t_code[t], Sc, cpos, f, uI, uJ, tmp, B)
+                w = t_w[t]
+                for m in range(9):
+                    acc[m] += w * B[m]
+            o = 9 * e
+            for a in range(3):
+                for b in range(3):
+                    s = 0.0
+                    for q in range(3):
+                        s += dinv[9 * f + 3 * a + q] * acc[3 * q + b]
+                    v = (p0[e] if a == b else 0.0) - omega * s
+                    out[o + 3 * a + b] = v
+                    rs[3 * a + b] += v
+        # F = target_f * rs^-1 (adjugate), applied from the left to the row's blocks
+        a0, a1, a2, a3, a4, a5, a6, a7, a8 = rs[0], rs[1], rs[2], rs[3], rs[4], rs[5], rs[6], rs[7], rs[8]
+        c00 = a4 * a8 - a5 * a7
+        c10 = a5 * a6 - a3 * a8
+        c20 = a3 * a7 - a4 * a6
+        det = a0 * c00 + a1 * c10 + a2 * c20
+        if not np.isfinite(det) or abs(det) <= 1e-12 * max(abs(a0), abs(a4), abs(a8)) ** 3:
+            for e in range(ptr[f], ptr[f + 1]):
+                for a in range(3):
+                    for b in range(3):
+                        out[9 * e + 3 * a + b] = p0[e] if a == b else 0.0
+            continue
+        s = target[f] / det
+        F[0], F[1], F[2] = c00 * s, (a2 * a7 - a1 * a8) * s, (a1 * a5 - a2 * a4) * s
+        F[3], F[4], F[5] = c10 * s, (a0 * a8 - a2 * a6) * s, (a2 * a3 - a0 * a5) * s
+        F[6], F[7], F[8] = c20 * s, (a1 * a6 - a0 * a7) * s, (a0 * a4 - a1 * a3) * s
+        for e in range(ptr[f], ptr[f + 1]):
+            o = 9 * e
+            for m in range(9):
+                B[m] = out[o + m]
+            for a in range(3):
+                for b in range(3):
+                    out[o + 3 * a + b] = F[3 * a] * B[b] + F[3 * a + 1] * B[3 + b] + F[3 * a + 2] * B[6 + b]
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _ptap(Pa, o_a, B, Pb, o_b, t, out):
+    """``out = Pa^T B Pb`` for flat 3x3 blocks (``Pa`` at ``o_a``, ``Pb`` at ``o_b``; ``t``: scratch)."""
+    for a in range(3):                      # t = B Pb
+        for b in range(3):
+            t[3 * a + b] = B[3 * a] * Pb[o_b + b] + B[3 * a + 1] * Pb[o_b + 3 + b] + B[3 * a + 2] * Pb[o_b + 6 + b]
+    for a in range(3):                      # out = Pa^T t
+        for b in range(3):
+            out[3 * a + b] = Pa[o_a + a] * t[b] + Pa[o_a + 3 + a] * t[3 + b] + Pa[o_a + 6 + a] * t[6 + b]
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _gal_add_block(C, dst, od, ou):
+    """Add the coarse contribution ``C`` into the coarse block and way packed in ``dst = 4 t + mode`` (the
+    modes of :func:`implicit_cloth.kernels.pcg.galerkin`, with ``C`` in place of ``w B``)."""
+    t = 9 * (dst >> 2)
+    m = dst & 3
+    if m == 3 or m == 0:
+        tgt = od if m == 3 else ou
+        for k in range(9):
+            tgt[t + k] += C[k]
+    elif m == 1:
+        for a in range(3):
+            for b in range(3):
+                ou[t + 3 * a + b] += C[3 * b + a]
+    else:
+        for a in range(3):
+            for b in range(3):
+                od[t + 3 * a + b] += C[3 * a + b] + C[3 * b + a]
+
+
+@njit(cache=True, fastmath={"contract"})
+def galerkin_blocks(sd, su, od, ou, d_ptr, d_dst, d_pa, d_pb, u_ptr, u_dst, u_pa, u_pb, pb):
+    """Galerkin product ``P^T A P`` for a block prolongation ``pb`` (9 numbers an entry of ``P0``'s pattern):
+    the entry lists of :func:`implicit_cloth.kernels.pcg.galerkin` with, instead of the weight
+    ``P0[i, I] P0[j, J]``, the two prolongation entries ``pa``, ``pb`` whose blocks give ``P[i, I]^T B P[j, J]``."""
+    od[:] = 0.0
+    ou[:] = 0.0
+    Y = np.empty(9)
+    C = np.empty(9)
+    _galerkin_list(sd, od, ou, d_ptr, d_dst, d_pa, d_pb, pb, Y, C)
+    _galerkin_list(su, od, ou, u_ptr, u_dst, u_pa, u_pb, pb, Y, C)
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _galerkin_list(src, od, ou, ptr, dst, pa, pbi, pb, Y, C):
+    """One entry list of :func:`galerkin_blocks`. A source block's entries come in runs of the same ``pa``
+    (the pairs are listed ``a``-major), so ``Y = P[i, I]^T B`` is formed once a run and each entry costs one
+    3x3 product ``Y P[j, J]``."""
+    for s in range(len(ptr) - 1):
+        o = 9 * s
+        last = -1
+        for e in range(ptr[s], ptr[s + 1]):
+            a_ = pa[e]
+            if a_ != last:                  # Y = Pa^T B
+                q = 9 * a_
+                for a in range(3):
+                    for b in range(3):
+                        Y[3 * a + b] = pb[q + a] * src[o + b] + pb[q + 3 + a] * src[o + 3 + b] \
+                            + pb[q + 6 + a] * src[o + 6 + b]
+                last = a_
+            r = 9 * pbi[e]
+            for a in range(3):              # C = Y Pb
+                for b in range(3):
+                    C[3 * a + b] = Y[3 * a] * pb[r + b] + Y[3 * a + 1] * pb[r + 3 + b] + Y[3 * a + 2] * pb[r + 6 + b]
+            _gal_add_block(C, dst[e], od, ou)
+
+
+@njit(cache=True, fastmath={"contract"})
+def galerkin_blocks_filter(sd, su, od, ou, d_ptr, d_dst, d_pa, d_pb, u_ptr, u_dst, u_pa, u_pb, pb,
+                           cpos, Sc, fuI, fuJ, td, tu):
+    """:func:`implicit_cloth.kernels.pcg.galerkin_filter` for a block prolongation: after
+    :func:`galerkin_blocks` of the unfiltered fine matrix, add ``filtered - unfiltered`` of the few fine blocks
+    touching a constrained vertex through their own entries."""
+    B = np.empty(9)
+    C = np.empty(9)
+    T = np.empty(9)
+    for q in range(len(td)):
+        s = td[q]
+        c = cpos[s]
+        _filtered_block(sd, 9 * s, Sc, c, c, True, B)
+        for k in range(9):
+            B[k] -= sd[9 * s + k]
+        for e in range(d_ptr[s], d_ptr[s + 1]):
+            _ptap(pb, 9 * d_pa[e], B, pb, 9 * d_pb[e], T, C)
+            _gal_add_block(C, d_dst[e], od, ou)
+    for q in range(len(tu)):
+        s = tu[q]
+        _filtered_block(su, 9 * s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
+        for k in range(9):
+            B[k] -= su[9 * s + k]
+        for e in range(u_ptr[s], u_ptr[s + 1]):
+            _ptap(pb, 9 * u_pa[e], B, pb, 9 * u_pb[e], T, C)
+            _gal_add_block(C, u_dst[e], od, ou)

@@ -1,0 +1,147 @@
+"""The smoothed-prolongation multigrid (``solver.preconditioner = "multigrid_smoothed"``): its prolongation
+against an independent construction, its solves against a direct solve with the constraints exact, the
+compiled path against the numpy reference, and the iterations it saves on a wrinkled cloth."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from test_solvers import ACCELERATORS, NUMBA, H, _direct, _mesh_file, _scene, _system
+
+import implicit_cloth as ic
+from implicit_cloth.solvers import Filter, filtered_pcg, make_preconditioner, numba_available
+from implicit_cloth.solvers.multigrid import SMOOTH_P_OMEGA, grid_prolongations
+
+
+def _filter(m):
+    return Filter(m.n, m.pinned, np.array([m.n // 2, m.n // 3]),
+                  np.stack([np.diag([1.0, 0.0, 1.0]), np.diag([0.0, 0.0, 1.0])]))
+
+
+def _independent_p(A, filt, P0, omega):
+    """``F (P0 kron I3 - w D^-1 A_f (P0 kron I3))`` kept on P0's block pattern, with ``A_f = S A S + I - S`` and
+    ``F`` restoring every fine vertex's block row sum to I, written with scipy products only."""
+    S = sp.block_diag(list(filt.matrices()), format="csr")
+    I3n = sp.identity(A.shape[0], format="csr")
+    Af = sp.csr_array(S @ A @ S + (I3n - S))
+    n = A.shape[0] // 3
+    D = np.stack([Af[3 * i:3 * i + 3, 3 * i:3 * i + 3].toarray() for i in range(n)])
+    Dinv = sp.block_diag(list(np.linalg.inv(D)), format="csr")
+    P3 = sp.csr_array(sp.kron(P0, sp.identity(3), format="csr"))
+    mask = sp.csr_array(sp.kron((abs(P0) > 0).astype(float), np.ones((3, 3)), format="csr"))
+    Pt = sp.csr_array((P3 - omega * (Dinv @ (Af @ P3))) * mask)
+    E = sp.kron(np.ones((P0.shape[1], 1)), np.eye(3), format="csr")
+    rs = (Pt @ E).toarray().reshape(n, 3, 3)
+    return sp.csr_array(sp.block_diag(list(np.linalg.inv(rs)), format="csr") @ Pt), Af
+
+
+@pytest.mark.parametrize("accelerator", ACCELERATORS)
+def test_smoothed_prolongation_and_coarse_matrix_against_an_independent_construction(accelerator):
+    sim = ic.Simulator(_scene(res=(33, 20)), dt=H)
+    m, A, _ = _system(sim, steps=20)
+    filt = _filter(m)
+    mg = make_preconditioner("multigrid_smoothed", m, accelerator)
+    assert mg.name == "multigrid_smoothed" and mg.smoothed and mg.n_levels >= 3
+    mg.setup(None, filt)
+    P0 = grid_prolongations(33, 20)[0]
+    ref, Af = _independent_p(A, filt, P0, SMOOTH_P_OMEGA)
+    if accelerator == "numpy":
+        got = mg.engine.P3[0]
+    else:
+        fh = mg.engine
+        got = mg.sprol[0].csr(fh.pval[:9 * int(fh.pnnz[1])].reshape(-1, 3, 3))
+    assert np.allclose(got.toarray(), ref.toarray(), rtol=1e-10, atol=1e-12)
+    # a translation is interpolated exactly; the blocks do couple the components (not P0 kron I3)
+    for a in range(3):
+        e = np.zeros(3 * P0.shape[1])
+        e[a::3] = 1.0
+        t = got @ e
+        assert np.allclose(t[a::3], 1.0, atol=1e-12) and np.allclose(np.delete(t.reshape(-1, 3), a, 1), 0, atol=1e-12)
+    P3 = sp.csr_array(sp.kron(P0, sp.identity(3), format="csr"))
+    assert np.abs((got - P3).toarray()).max() > 1e-3
+    # the first coarse matrix is P^T (S A S + I - S) P
+    C = (ref.T @ Af @ ref).toarray()
+    lvl = mg.levels[0].system
+    if accelerator == "numpy":
+        Cg = mg._A[1].toarray()
+    else:
+        fh = mg.engine
+        nc = lvl.n
+        Cg = np.zeros((nc, 3, nc, 3))
+        i = np.arange(nc)
+        Cg[i, :, i, :] = fh.dg[fh.voff[1]:fh.voff[2]]
+        I, J, U = fh.uI[fh.uoff[1]:fh.uoff[2]], fh.uJ[fh.uoff[1]:fh.uoff[2]], fh.uv[fh.uoff[1]:fh.uoff[2]]
+        Cg[I, :, J, :] = U
+        Cg[J, :, I, :] = U.transpose(0, 2, 1)
+        Cg = Cg.reshape(3 * nc, 3 * nc)
+    assert np.allclose(Cg, C, rtol=1e-10, atol=1e-10 * np.abs(C).max())
+
+
+@pytest.mark.parametrize("kind", ["grid", "mesh"])
+@pytest.mark.parametrize("accelerator", ACCELERATORS)
+@pytest.mark.parametrize("tol", [1e-2, 1e-4])
+def test_smoothed_multigrid_matches_direct_solve_within_tolerance(tmp_path, kind, accelerator, tol):
+    scene = _scene(mesh=_mesh_file(tmp_path) if kind == "mesh" else None)
+    sim = ic.Simulator(scene, dt=H)
+    m, A, b = _system(sim, steps=12)
+    filt = _filter(m)
+    z = np.zeros_like(b)
+    z.reshape(-1, 3)[m.pinned] = 0.01
+    z.reshape(-1, 3)[m.n // 2, 1] = -0.02
+    mg = make_preconditioner("multigrid_smoothed", m, accelerator)
+    mg.setup(None, filt)
+    dv, res = filtered_pcg(m.system.csr, b, z, filt, mg, tol=tol, max_iterations=2000,
+                           mass=np.repeat(m.masses, 3))
+    ref = _direct(A, b, z, filt)
+    assert res.converged
+    assert np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= tol
+    d3, z3 = dv.reshape(-1, 3), z.reshape(-1, 3)
+    assert np.array_equal(d3[m.pinned], z3[m.pinned])                  # constrained: exact
+    assert d3[m.n // 2, 1] == z3[m.n // 2, 1]
+    assert np.array_equal(d3[m.n // 3, :2], z3[m.n // 3, :2])
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_smoothed_numba_path_is_the_numpy_iteration():
+    for res in ((33, 20), (8, 8)):
+        sim = ic.Simulator(_scene(res=res), dt=H)
+        m, A, b = _system(sim, steps=10)
+        filt = _filter(m)
+        out = {}
+        for acc in ("numpy", "numba"):
+            mg = make_preconditioner("multigrid_smoothed", m, acc)
+            mg.setup(None, filt)
+            r = filt.apply(np.random.default_rng(2).standard_normal(b.shape))
+            out[acc] = (mg.apply(r), *filtered_pcg(m.system.csr, b, np.zeros_like(b), filt, mg, tol=1e-6,
+                                                   mass=np.repeat(m.masses, 3)))
+        (v0, dv0, r0), (v1, dv1, r1) = out["numpy"], out["numba"]
+        assert np.allclose(v1, v0, rtol=1e-10, atol=1e-11 * np.abs(v0).max())
+        assert r1.iterations == r0.iterations and r1.converged
+        assert np.allclose(dv1, dv0, rtol=1e-9, atol=1e-12 * np.abs(dv0).max())
+
+
+@pytest.mark.parametrize("accelerator", ["numpy", NUMBA])
+def test_smoothed_multigrid_saves_iterations_on_a_wrinkled_cloth(accelerator):
+    """The stiff cloth after 40 steps hangs in folds: the smoothed coarse space follows them (the lever study,
+    benchmarks/mg_levers.py, measured about half the iterations at 32²-256²); at least a quarter fewer here."""
+    sim = ic.Simulator(_scene(res=(40, 40)), dt=H)
+    m, A, b = _system(sim, steps=40)
+    filt = Filter(m.n, m.pinned)
+    its = {}
+    for name in ("multigrid", "multigrid_smoothed"):
+        mg = make_preconditioner(name, m, accelerator)
+        mg.setup(None, filt)
+        _, res = filtered_pcg(m.system.csr, b, np.zeros_like(b), filt, mg, tol=1e-3, mass=np.repeat(m.masses, 3))
+        assert res.converged
+        its[name] = res.iterations
+    assert its["multigrid_smoothed"] <= 0.75 * its["multigrid"], its
+
+
+def test_scene_selects_the_smoothed_multigrid_and_the_report_names_it():
+    scene = _scene(res=(12, 12))
+    scene["solver"] = {"preconditioner": "multigrid_smoothed"}
+    r = ic.Simulator(scene, dt=H).run(duration=0.1)
+    assert r.report["solver"]["preconditioner"] == "multigrid_smoothed"
+    assert np.isfinite(r.positions).all()
+    base = ic.Simulator(_scene(res=(12, 12)), dt=H).run(duration=0.1)
+    disp = np.linalg.norm(base.positions[-1] - base.positions[0], axis=1).max()
+    assert np.linalg.norm(r.positions[-1] - base.positions[-1], axis=1).max() <= 0.01 * disp
