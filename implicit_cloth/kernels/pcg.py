@@ -627,7 +627,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
-def _filtered_block(src, o, Sc, ci, cj, diag, out):
+def filtered_block(src, o, Sc, ci, cj, diag, out):
     """``out = S_i B S_j`` (plus ``I - S_i`` when ``diag``) for the flat block ``B = src[o:o + 9]``; ``ci``,
     ``cj``: the positions of its row and column vertex in the filters ``Sc`` (-1: a free vertex, ``S = I``)."""
     for k in range(9):
@@ -731,14 +731,14 @@ def galerkin_filter(sd, su, od, ou, d_ptr, d_dst, d_w, u_ptr, u_dst, u_w, cpos, 
     for q in range(len(td)):
         s = td[q]
         c = cpos[s]
-        _filtered_block(sd, 9 * s, Sc, c, c, True, B)
+        filtered_block(sd, 9 * s, Sc, c, c, True, B)
         for k in range(9):
             B[k] -= sd[9 * s + k]
         for e in range(d_ptr[s], d_ptr[s + 1]):
             _gal_add(B, d_dst[e], d_w[e], od, ou)
     for q in range(len(tu)):
         s = tu[q]
-        _filtered_block(su, 9 * s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
+        filtered_block(su, 9 * s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
         for k in range(9):
             B[k] -= su[9 * s + k]
         for e in range(u_ptr[s], u_ptr[s + 1]):

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .pcg import _filtered_block
+from .pcg import filtered_block
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
@@ -46,7 +46,7 @@ def _term_block(sd, su, code, Sc, cpos, f, uI, uJ, tmp, out):
                 tmp[3 * a + b] = su[9 * k + 3 * b + a]
         j = uI[k]
     if len(cpos) and (cpos[f] >= 0 or cpos[j] >= 0):
-        _filtered_block(tmp, 0, Sc, cpos[f], cpos[j], kind == 0, out)
+        filtered_block(tmp, 0, Sc, cpos[f], cpos[j], kind == 0, out)
     else:
         for m in range(9):
             out[m] = tmp[m]
@@ -189,7 +189,7 @@ def galerkin_blocks_filter(sd, su, od, ou, d_ptr, d_dst, d_pa, d_pb, u_ptr, u_ds
     for q in range(len(td)):
         s = td[q]
         c = cpos[s]
-        _filtered_block(sd, 9 * s, Sc, c, c, True, B)
+        filtered_block(sd, 9 * s, Sc, c, c, True, B)
         for k in range(9):
             B[k] -= sd[9 * s + k]
         for e in range(d_ptr[s], d_ptr[s + 1]):
@@ -197,7 +197,7 @@ def galerkin_blocks_filter(sd, su, od, ou, d_ptr, d_dst, d_pa, d_pb, u_ptr, u_ds
             _gal_add_block(C, d_dst[e], od, ou)
     for q in range(len(tu)):
         s = tu[q]
-        _filtered_block(su, 9 * s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
+        filtered_block(su, 9 * s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
         for k in range(9):
             B[k] -= su[9 * s + k]
         for e in range(u_ptr[s], u_ptr[s + 1]):
