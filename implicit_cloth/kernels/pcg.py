@@ -270,6 +270,19 @@ def _sub(b, y, par=False):
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
+def _store3(y, i, y0, y1, y2, add):
+    """``y[3 i : 3 i + 3] (+)= (y0, y1, y2)``: the end of a transfer row."""
+    if add:
+        y[3 * i] += y0
+        y[3 * i + 1] += y1
+        y[3 * i + 2] += y2
+    else:
+        y[3 * i] = y0
+        y[3 * i + 1] = y1
+        y[3 * i + 2] = y2
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
 def _transfer_row(ptr, idx, val, x, y, add, i):
     y0 = 0.0
     y1 = 0.0
@@ -280,14 +293,7 @@ def _transfer_row(ptr, idx, val, x, y, add, i):
         y0 += w * x[3 * J]
         y1 += w * x[3 * J + 1]
         y2 += w * x[3 * J + 2]
-    if add:
-        y[3 * i] += y0
-        y[3 * i + 1] += y1
-        y[3 * i + 2] += y2
-    else:
-        y[3 * i] = y0
-        y[3 * i + 1] = y1
-        y[3 * i + 2] = y2
+    _store3(y, i, y0, y1, y2, add)
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
@@ -303,14 +309,7 @@ def _btransfer_row(ptr, idx, val, x, y, add, i):
         y0 += val[o] * x0 + val[o + 1] * x1 + val[o + 2] * x2
         y1 += val[o + 3] * x0 + val[o + 4] * x1 + val[o + 5] * x2
         y2 += val[o + 6] * x0 + val[o + 7] * x1 + val[o + 8] * x2
-    if add:
-        y[3 * i] += y0
-        y[3 * i + 1] += y1
-        y[3 * i + 2] += y2
-    else:
-        y[3 * i] = y0
-        y[3 * i + 1] = y1
-        y[3 * i + 2] = y2
+    _store3(y, i, y0, y1, y2, add)
 
 
 @njit(cache=True, fastmath={"contract"}, parallel=True)
@@ -699,7 +698,7 @@ def galerkin(sd, su, od, ou, d_ptr, d_dst, d_w, u_ptr, u_dst, u_w):
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
-def _gal_add(B, dst, w, od, ou):
+def gal_add(B, dst, w, od, ou):
     """One Galerkin entry of :func:`galerkin`: the flat block ``B`` times ``w`` into the coarse block and way
     packed in ``dst = 4 t + mode``."""
     t = 9 * (dst >> 2)
@@ -720,6 +719,15 @@ def _gal_add(B, dst, w, od, ou):
                 od[t + 3 * a + b] += w * (B[3 * a + b] + B[3 * b + a])
 
 
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def filter_delta(src, s, Sc, ci, cj, diag, out):
+    """``out = filtered - unfiltered`` of the flat block ``s`` of ``src`` (:func:`filtered_block`): what a block
+    touching a constrained vertex adds to the Galerkin product of the unfiltered matrix."""
+    filtered_block(src, 9 * s, Sc, ci, cj, diag, out)
+    for k in range(9):
+        out[k] -= src[9 * s + k]
+
+
 @njit(cache=True, fastmath={"contract"})
 def galerkin_filter(sd, su, od, ou, d_ptr, d_dst, d_w, u_ptr, u_dst, u_w, cpos, Sc, fuI, fuJ, td, tu):
     """After :func:`galerkin` of the unfiltered fine matrix: the correction that makes it the product of the
@@ -730,19 +738,14 @@ def galerkin_filter(sd, su, od, ou, d_ptr, d_dst, d_w, u_ptr, u_dst, u_w, cpos, 
     B = np.empty(9)
     for q in range(len(td)):
         s = td[q]
-        c = cpos[s]
-        filtered_block(sd, 9 * s, Sc, c, c, True, B)
-        for k in range(9):
-            B[k] -= sd[9 * s + k]
+        filter_delta(sd, s, Sc, cpos[s], cpos[s], True, B)
         for e in range(d_ptr[s], d_ptr[s + 1]):
-            _gal_add(B, d_dst[e], d_w[e], od, ou)
+            gal_add(B, d_dst[e], d_w[e], od, ou)
     for q in range(len(tu)):
         s = tu[q]
-        filtered_block(su, 9 * s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
-        for k in range(9):
-            B[k] -= su[9 * s + k]
+        filter_delta(su, s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
         for e in range(u_ptr[s], u_ptr[s + 1]):
-            _gal_add(B, u_dst[e], u_w[e], od, ou)
+            gal_add(B, u_dst[e], u_w[e], od, ou)
 
 
 #: :func:`implicit_cloth.solvers.pcg.current_error_estimate`, compiled: the one definition in :mod:`.estimate`

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .pcg import filtered_block
+from .pcg import filter_delta, filtered_block, gal_add
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
@@ -110,34 +110,19 @@ def smooth_prolongation(sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, u
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
-def _ptap(Pa, o_a, B, Pb, o_b, t, out):
-    """``out = Pa^T B Pb`` for flat 3x3 blocks (``Pa`` at ``o_a``, ``Pb`` at ``o_b``; ``t``: scratch)."""
-    for a in range(3):                      # t = B Pb
+def _pt_b(pb, q, B, o, Y):
+    """``Y = P^T B`` for the flat block ``P = pb[q:q + 9]`` and ``B = B[o:o + 9]``."""
+    for a in range(3):
         for b in range(3):
-            t[3 * a + b] = B[3 * a] * Pb[o_b + b] + B[3 * a + 1] * Pb[o_b + 3 + b] + B[3 * a + 2] * Pb[o_b + 6 + b]
-    for a in range(3):                      # out = Pa^T t
-        for b in range(3):
-            out[3 * a + b] = Pa[o_a + a] * t[b] + Pa[o_a + 3 + a] * t[3 + b] + Pa[o_a + 6 + a] * t[6 + b]
+            Y[3 * a + b] = pb[q + a] * B[o + b] + pb[q + 3 + a] * B[o + 3 + b] + pb[q + 6 + a] * B[o + 6 + b]
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
-def _gal_add_block(C, dst, od, ou):
-    """Add the coarse contribution ``C`` into the coarse block and way packed in ``dst = 4 t + mode`` (the
-    modes of :func:`implicit_cloth.kernels.pcg.galerkin`, with ``C`` in place of ``w B``)."""
-    t = 9 * (dst >> 2)
-    m = dst & 3
-    if m == 3 or m == 0:
-        tgt = od if m == 3 else ou
-        for k in range(9):
-            tgt[t + k] += C[k]
-    elif m == 1:
-        for a in range(3):
-            for b in range(3):
-                ou[t + 3 * a + b] += C[3 * b + a]
-    else:
-        for a in range(3):
-            for b in range(3):
-                od[t + 3 * a + b] += C[3 * a + b] + C[3 * b + a]
+def _y_p(Y, pb, r, C):
+    """``C = Y P`` for the flat block ``P = pb[r:r + 9]``."""
+    for a in range(3):
+        for b in range(3):
+            C[3 * a + b] = Y[3 * a] * pb[r + b] + Y[3 * a + 1] * pb[r + 3 + b] + Y[3 * a + 2] * pb[r + 6 + b]
 
 
 @njit(cache=True, fastmath={"contract"})
@@ -155,26 +140,19 @@ def galerkin_blocks(sd, su, od, ou, d_ptr, d_dst, d_pa, d_pb, u_ptr, u_dst, u_pa
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
 def _galerkin_list(src, od, ou, ptr, dst, pa, pbi, pb, Y, C):
-    """One entry list of :func:`galerkin_blocks`. A source block's entries come in runs of the same ``pa``
-    (the pairs are listed ``a``-major), so ``Y = P[i, I]^T B`` is formed once a run and each entry costs one
-    3x3 product ``Y P[j, J]``."""
+    """One entry list of :func:`galerkin_blocks`: source block ``s`` is ``src[9 s:9 s + 9]``, its entries
+    ``ptr[s]:ptr[s+1]``. They come in runs of the same ``pa`` (the pairs are listed ``a``-major), so
+    ``Y = P[i, I]^T B`` is formed once a run and each entry costs one 3x3 product ``Y P[j, J]``, added with the
+    modes of the scalar product (:func:`~.pcg.gal_add`, weight 1)."""
     for s in range(len(ptr) - 1):
         o = 9 * s
         last = -1
         for e in range(ptr[s], ptr[s + 1]):
-            a_ = pa[e]
-            if a_ != last:                  # Y = Pa^T B
-                q = 9 * a_
-                for a in range(3):
-                    for b in range(3):
-                        Y[3 * a + b] = pb[q + a] * src[o + b] + pb[q + 3 + a] * src[o + 3 + b] \
-                            + pb[q + 6 + a] * src[o + 6 + b]
-                last = a_
-            r = 9 * pbi[e]
-            for a in range(3):              # C = Y Pb
-                for b in range(3):
-                    C[3 * a + b] = Y[3 * a] * pb[r + b] + Y[3 * a + 1] * pb[r + 3 + b] + Y[3 * a + 2] * pb[r + 6 + b]
-            _gal_add_block(C, dst[e], od, ou)
+            if pa[e] != last:
+                last = pa[e]
+                _pt_b(pb, 9 * last, src, o, Y)
+            _y_p(Y, pb, 9 * pbi[e], C)
+            gal_add(C, dst[e], 1.0, od, ou)
 
 
 @njit(cache=True, fastmath={"contract"})
@@ -184,22 +162,13 @@ def galerkin_blocks_filter(sd, su, od, ou, d_ptr, d_dst, d_pa, d_pb, u_ptr, u_ds
     :func:`galerkin_blocks` of the unfiltered fine matrix, add ``filtered - unfiltered`` of the few fine blocks
     touching a constrained vertex through their own entries."""
     B = np.empty(9)
+    Y = np.empty(9)
     C = np.empty(9)
-    T = np.empty(9)
     for q in range(len(td)):
         s = td[q]
-        c = cpos[s]
-        filtered_block(sd, 9 * s, Sc, c, c, True, B)
-        for k in range(9):
-            B[k] -= sd[9 * s + k]
-        for e in range(d_ptr[s], d_ptr[s + 1]):
-            _ptap(pb, 9 * d_pa[e], B, pb, 9 * d_pb[e], T, C)
-            _gal_add_block(C, d_dst[e], od, ou)
+        filter_delta(sd, s, Sc, cpos[s], cpos[s], True, B)       # one source block, B: its entries d_ptr[s]:d_ptr[s+1]
+        _galerkin_list(B, od, ou, d_ptr[s:s + 2], d_dst, d_pa, d_pb, pb, Y, C)
     for q in range(len(tu)):
         s = tu[q]
-        filtered_block(su, 9 * s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
-        for k in range(9):
-            B[k] -= su[9 * s + k]
-        for e in range(u_ptr[s], u_ptr[s + 1]):
-            _ptap(pb, 9 * u_pa[e], B, pb, 9 * u_pb[e], T, C)
-            _gal_add_block(C, u_dst[e], od, ou)
+        filter_delta(su, s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
+        _galerkin_list(B, od, ou, u_ptr[s:s + 2], u_dst, u_pa, u_pb, pb, Y, C)

@@ -323,11 +323,11 @@ class _NumpyHierarchy:
             blocks = _filtered_blocks(fine, blocks, filt)
         systems = mg._systems()
         mg._A, mg._blocks = [], []
+        dinv = np.zeros((0, 3, 3))
         for l, sm in enumerate(systems):
             if l > 0 and mg.smoothed:            # P from the level above's matrix, then P^T A P into the pattern
                 spl = mg.sprol[l - 1]
-                up = systems[l - 1]
-                P3 = spl.csr(spl.blocks_numpy(blocks, inv3(blocks[up.diag_index]), mg.p_omega))
+                P3 = spl.csr(spl.blocks_numpy(blocks, dinv, mg.p_omega))
                 self.P3[l - 1], self.R3[l - 1] = P3, sp.csr_array(P3.T.tocsr())
                 Cc = sp.coo_array(P3.T @ mg._A[-1] @ P3)
                 sm.reset()
@@ -346,7 +346,8 @@ class _NumpyHierarchy:
                 A = _csr_from_blocks(fine, blocks)
             mg._A.append(A)
             mg._blocks.append(blocks)
-            self._D[l].data[:] = inv3(blocks[sm.diag_index]).reshape(-1)
+            dinv = inv3(blocks[sm.diag_index])          # the smoother's, and the next level's smoothing of P
+            self._D[l].data[:] = dinv.reshape(-1)
         return mg._A[-1].toarray()
 
     def apply(self, r: np.ndarray) -> np.ndarray:
@@ -696,6 +697,8 @@ class _FusedHierarchy:
         self.filt = filt
         self._filter_arrays(filt)
         from ..kernels import pcg as _fused
+        if mg.smoothed:
+            from ..kernels import smoothed as _smoothed
 
         flat = fine.blocks.reshape(-1)
         _fused.gather_blocks(flat, fine.diag_index, self.adg.reshape(-1))
@@ -723,8 +726,6 @@ class _FusedHierarchy:
                 cpos = np.full(n0, -1, dtype=np.int64)
                 cpos[c] = np.arange(len(c))
             if mg.smoothed:           # the level's block prolongation from its current (filtered) matrix
-                from ..kernels import smoothed as _smoothed
-
                 spl = mg.sprol[l - 1]
                 pb = self.pval[9 * self.pnnz[l - 1]:9 * self.pnnz[l]]
                 filt_c = cpos if (l == 1 and len(c)) else self._empty_c
