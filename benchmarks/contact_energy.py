@@ -274,6 +274,8 @@ def specs(args: argparse.Namespace, mesh_dir: Path) -> list[dict]:
     if args.friction_speed > 0:
         for spec in out:
             spec["scene"]["collision"]["friction_speed"] = args.friction_speed
+            if args.friction_newton:
+                spec["scene"]["collision"]["friction_newton"] = args.friction_newton
     if args.contact_tolerance:
         for spec in out:
             spec["scene"].setdefault("solver", {})["contact_tolerance"] = args.contact_tolerance
@@ -308,6 +310,9 @@ def markdown(res: dict) -> str:
              f"(goal <= {100 * RISE_GOAL:g} %).", ""]
     if res.get("friction_speed"):
         lines[0] += f" Smoothed friction, `collision.friction_speed = {res['friction_speed']:g}` m/s."
+        if res.get("friction_newton"):
+            lines[0] += (f" Solved within each step by up to `collision.friction_newton = {res['friction_newton']}`"
+                         " Newton iterations.")
     if res.get("contact_tolerance"):
         lines[0] += f" Solves of steps with contacts at `solver.contact_tolerance = {res['contact_tolerance']:g}`."
     lines += ["| group | shape | grid | dt | material | rise | max strain | end | at rest from | on it at the end | "
@@ -440,6 +445,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="static rows still moving at the end are run again at dt / K (0: not)")
     p.add_argument("--friction-speed", type=float, default=0.0, metavar="EPS",
                    help="collision.friction_speed of every row, m/s (smoothed friction; 0: Coulomb's states)")
+    p.add_argument("--friction-newton", type=int, default=0, metavar="K",
+                   help="collision.friction_newton of every row (with --friction-speed: the smoothed friction "
+                        "solved within the step by up to K Newton iterations; 0: linearised once)")
     p.add_argument("--contact-tolerance", type=float, default=0.0, metavar="TOL",
                    help="solver.contact_tolerance of every row (0: the default, solver.tolerance)")
     p.add_argument("--workers", type=int, default=1)
@@ -463,6 +471,7 @@ def main(argv: list[str] | None = None) -> int:
             rows = [run_row(s) for s in progress(rows_in, desc="contact")]
     res = {"benchmark": "contact_energy", "quick": args.quick, "machine": machine(), "duration": args.duration,
            "moving_duration": args.moving_duration, "friction_speed": args.friction_speed,
+           "friction_newton": args.friction_newton,
            "contact_tolerance": args.contact_tolerance, "wall_s": time.perf_counter() - t0, "rows": rows,
            "goals": {"rise_frac": RISE_GOAL, "stretch": STRETCH_GOAL}}
     args.out.mkdir(parents=True, exist_ok=True)

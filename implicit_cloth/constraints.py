@@ -27,7 +27,7 @@ reaction and each contact's normal impulse ``J_i . n_i``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -61,6 +61,13 @@ class Constraints:
     damping : (K, 3, 3) array
         Friction damping of each contact, N*s/m, symmetric and tangential (smoothed friction: the force
         ``-damping (v - velocity)`` in the solve, beside ``friction``; empty when there is none).
+    rub : (K,) array
+        Smoothed friction solved to convergence (``collision.friction_newton``): each contact's friction
+        bound ``mu N``, N; empty when the friction is linearised once (``friction`` and ``damping`` then say
+        all). With it, ``friction`` and ``damping`` are the friction's linearisation at some velocity and
+        :meth:`relinearized` moves it (:meth:`friction_force`, :meth:`friction_potential`: the law itself).
+    slide_speed : float
+        Its sliding speed ``eps``, m/s (``collision.friction_speed``).
     """
 
     pinned: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
@@ -72,6 +79,8 @@ class Constraints:
     stick: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     friction: np.ndarray = field(default_factory=lambda: _empty(3))
     damping: np.ndarray = field(default_factory=lambda: _empty(3, 3))
+    rub: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    slide_speed: float = 0.0
 
     @classmethod
     def of_pins(cls, model) -> "Constraints":
@@ -80,22 +89,24 @@ class Constraints:
 
     def with_contacts(self, idx: np.ndarray, normal: np.ndarray, offset: np.ndarray, velocity: np.ndarray,
                       stick: np.ndarray | None = None, friction: np.ndarray | None = None,
-                      damping: np.ndarray | None = None) -> "Constraints":
+                      damping: np.ndarray | None = None, rub: np.ndarray | None = None,
+                      slide_speed: float = 0.0) -> "Constraints":
         """These pins with the given contacts (replacing any contacts); by default frictionless."""
         idx = np.asarray(idx, dtype=np.int64)
         st = np.zeros(len(idx), dtype=bool) if stick is None else np.asarray(stick, dtype=bool)
         fr = np.zeros((len(idx), 3)) if friction is None else np.asarray(friction, dtype=float)
         dm = _empty(3, 3) if damping is None else np.asarray(damping, dtype=float)
+        rb = np.zeros(0) if rub is None else np.asarray(rub, dtype=float)
         return Constraints(self.pinned, self.pin_velocity, idx, np.asarray(normal, dtype=float),
-                           np.asarray(offset, dtype=float), np.asarray(velocity, dtype=float), st, fr, dm)
+                           np.asarray(offset, dtype=float), np.asarray(velocity, dtype=float), st, fr, dm, rb,
+                           float(slide_speed))
 
     def with_pins(self, idx: np.ndarray, velocity: np.ndarray) -> "Constraints":
         """These constraints with vertices ``idx`` (not pinned already, in no contact) also prescribed to end the
         step with ``velocity`` (K, 3), as pins are (self-collision's re-solve)."""
-        return Constraints(np.concatenate([self.pinned, np.asarray(idx, dtype=np.int64)]),
-                           np.concatenate([self.pin_velocity, np.asarray(velocity, dtype=float).reshape(-1, 3)]),
-                           self.contact, self.normal, self.offset, self.velocity, self.stick, self.friction,
-                           self.damping)
+        return replace(self, pinned=np.concatenate([self.pinned, np.asarray(idx, dtype=np.int64)]),
+                       pin_velocity=np.concatenate([self.pin_velocity,
+                                                    np.asarray(velocity, dtype=float).reshape(-1, 3)]))
 
     @property
     def n_contacts(self) -> int:
@@ -105,6 +116,63 @@ class Constraints:
     def damped(self) -> bool:
         """Whether the contacts carry a friction damping (smoothed friction)."""
         return len(self.damping) > 0
+
+    @property
+    def nonlinear(self) -> bool:
+        """Whether the contacts' smoothed friction is solved to convergence (``rub`` given)."""
+        return len(self.rub) > 0
+
+    def _slip(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The contacts' tangential velocities relative to the obstacle at ``v`` (K, 3) and their speeds (K,)."""
+        rel = v[self.contact] - self.velocity
+        vt = rel - np.einsum("ij,ij->i", rel, self.normal)[:, None] * self.normal
+        return vt, np.sqrt(np.einsum("ij,ij->i", vt, vt))
+
+    def friction_force(self, v: np.ndarray) -> np.ndarray:
+        """The contacts' friction force at the cloth velocities ``v`` (K, 3), N: with ``rub``, smoothed Coulomb
+        ``-mu N v_t / max(|v_t|, eps)`` (Huber); otherwise ``friction`` plus the damping force."""
+        if self.nonlinear:
+            vt, s = self._slip(v)
+            return -(self.rub / np.maximum(s, self.slide_speed))[:, None] * vt
+        return self.friction + self.damping_force(v) if self.damped else self.friction
+
+    def friction_potential(self, v: np.ndarray) -> float:
+        """Dissipation potential of the smoothed friction at ``v``, W: ``sum mu N f(|v_t|)`` with Huber's
+        ``f(s) = s^2 / (2 eps)`` below ``eps`` and ``s - eps / 2`` above (convex; minus its gradient is
+        :meth:`friction_force`). 0 without ``rub``."""
+        if not self.nonlinear:
+            return 0.0
+        _, s = self._slip(v)
+        e = self.slide_speed
+        return float(np.dot(self.rub, np.where(s <= e, 0.5 * s * s / e, s - 0.5 * e)))
+
+    def friction_error(self, v: np.ndarray) -> float:
+        """How far the linearised friction (``friction`` and ``damping``) is from the law at ``v``, relative to
+        the friction bounds: ``|F(v) - F_lin(v)| / |mu N|`` over all the contacts (0 without ``rub``; 0 when
+        every contact's speed stayed in the branch and direction it was linearised in)."""
+        if not self.nonlinear:
+            return 0.0
+        lin = self.friction + self.damping_force(v) if self.damped else self.friction
+        err = self.friction_force(v) - lin
+        bound = float(np.dot(self.rub, self.rub))
+        return float(np.sqrt(np.einsum("ij,ij->", err, err) / bound)) if bound > 0 else 0.0
+
+    def relinearized(self, v: np.ndarray) -> "Constraints":
+        """These constraints with the smoothed friction linearised at ``v`` (exactly: the Hessian of the Huber
+        potential, positive semi-definite): below ``eps`` no constant force and the damping ``mu N / eps`` on the
+        tangent plane; above it the kinetic force ``-mu N t`` and the damping ``mu N / |v_t|`` across ``t``
+        (``t`` the sliding direction). Unchanged without ``rub``."""
+        if not self.nonlinear:
+            return self
+        vt, s = self._slip(v)
+        n = self.normal
+        e = self.slide_speed
+        slow = s <= e
+        t = np.where(slow[:, None], 0.0, vt / np.maximum(s, 1e-300)[:, None])
+        k = self.rub / np.maximum(s, e)
+        P = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
+        D = k[:, None, None] * (P - t[:, :, None] * t[:, None, :])
+        return replace(self, friction=-self.rub[:, None] * t, damping=D)
 
     def damping_force(self, v: np.ndarray) -> np.ndarray:
         """The contacts' friction damping force at the cloth velocities ``v`` (N, 3): ``-damping (v - u)``,

@@ -62,7 +62,7 @@ CLOTH_KEYS = (
     "mass", "density", "pins", "material", "springs", "velocity",
 )
 COLLISION_KEYS = ("thickness", "restitution", "max_iterations", "newton_iterations", "friction_speed",
-                  "self_collision", "self_friction")
+                  "friction_newton", "self_collision", "self_friction")
 #: Coulomb coefficient between layers of cloth when ``self_collision`` is on and ``self_friction`` is not given.
 SELF_FRICTION = 0.3
 COLLISION_DEFAULTS: dict[str, Any] = {"thickness": 0.005, "restitution": 0.0, "max_iterations": 8,
@@ -368,6 +368,13 @@ def _collision(d: Any) -> dict[str, Any]:
         speed = number("collision.friction_speed", d["friction_speed"], lo=0.0)
         if speed > 0:
             out["friction_speed"] = speed
+    if "friction_newton" in d:
+        iters = integer("collision.friction_newton", d["friction_newton"], lo=0, hi=100)
+        if iters > 0 and "friction_speed" not in out:
+            raise SceneError(f"collision.friction_newton: {iters} Newton iterations of smoothed friction, but "
+                             "collision.friction_speed (its sliding speed, m/s) is not given or 0")
+        if iters > 0:
+            out["friction_newton"] = iters
     # self-collision's keys appear in the normalised table only when it is on (a scene without it is unchanged)
     if boolean("collision.self_collision", d.get("self_collision", False)):
         out["self_collision"] = True

@@ -147,7 +147,8 @@ class Collider:
         info.resting = len(active)
         info.solves = total.solves
         if np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
-            info.work = self._finish(state, new, h, cons, active, carried, total.constraint_impulse, limiter, info)
+            info.work = self._finish(state, new, h, cons, active, carried, total.constraint_impulse, limiter, info,
+                                     bool(total.friction_converged))
         self._carry = self._carry[-7:] + [(new, active.take(active.force >= 0.0))]
         info.t_collision = time.perf_counter() - t_start - t_solve
         total.collision = info
@@ -177,16 +178,19 @@ class Collider:
         # self-collision's re-solve of a Newton redo: the contact rounds linear, its Newton iterations once, last
         redo_newton = newton - 1 if extra and newton is not None and newton > 1 else None
         round_newton = None if redo_newton is not None else newton
+        friction_newton = self.ctx.friction_newton if redo_newton is None else 0   # solves converge friction
         for rnd in range(self.ctx.max_rounds):
             if extra and len(active):                           # a prescribed vertex is no contact
                 active = active.take(~np.isin(active.idx, pins.pinned))
             cons = self._constraints(pins, active, state.t, h)
             ts = time.perf_counter()
-            new, si = integrator.step(state, h, cons, guess, round_newton, start)
+            k = max(round_newton or 1, friction_newton) if friction_newton and cons.n_contacts else round_newton
+            new, si = integrator.step(state, h, cons, guess, k, start)
             t_solve += time.perf_counter() - ts
             start = None
             total.absorb(si)
             total.constraint_impulse = si.constraint_impulse
+            total.friction_converged = si.friction_converged
             balance = si.balance
             info.rounds = rnd + 1
             if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
@@ -195,7 +199,7 @@ class Collider:
             if len(active):
                 active, changed = self._after_solve(active, cons, si.constraint_impulse, new.v, h,
                                                     carried if rnd == 0 else active.idx, switched, released,
-                                                    rnd == 0)
+                                                    rnd == 0, bool(si.friction_converged))
             active, viol = self._detect(state, new, active, info)
             changed |= viol > RESOLVE_FRACTION * self.ctx.thickness
             if not changed:
@@ -254,8 +258,12 @@ class Collider:
         t = time.perf_counter() - ts
         total.absorb(si)
         total.constraint_impulse = si.constraint_impulse
+        total.friction_converged = si.friction_converged
         every = np.ones(self.ctx.n, dtype=bool)                   # every state held: forces and directions only
-        if len(active) and self.ctx.smooth > 0:
+        if len(active) and self.ctx.friction_newton and si.friction_converged:
+            friction.newton_update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob],
+                                   self.ctx.smooth, every)
+        elif len(active) and self.ctx.smooth > 0:
             friction.smooth_update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob],
                                    self.ctx.smooth, every)
         elif len(active):
@@ -264,7 +272,7 @@ class Collider:
 
     def _after_solve(self, active: contacts.Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray,
                      h: float, settled: np.ndarray, switched: np.ndarray, released: np.ndarray,
-                     first: bool = False) -> tuple[contacts.Planes, bool]:
+                     first: bool = False, met: bool = False) -> tuple[contacts.Planes, bool]:
         """Friction states and releases from a solve; whether the step must be solved again.
 
         The friction changes of contacts not in ``settled`` (after the first solve: the contacts the step did
@@ -285,7 +293,9 @@ class Collider:
         drape settle, not the 32² one sooner, and missed the jerked floor (an excess of 6 weights).
         """
         mu = self._mu[active.ob]
-        if self.ctx.smooth > 0:     # smoothed friction: every state change is solved again (friction.smooth_update)
+        if self.ctx.friction_newton and met:     # friction solved in the step: forces and speeds only
+            again = bool(np.any(friction.newton_update(active, cons, J, v, h, mu, self.ctx.smooth, switched)))
+        elif self.ctx.smooth > 0:     # smoothed friction: every state change is solved again (friction.smooth_update)
             again = bool(np.any(friction.smooth_update(active, cons, J, v, h, mu, self.ctx.smooth, switched)))
         else:
             changed = friction.update(active, cons, J, v, h, mu, switched)
@@ -301,7 +311,8 @@ class Collider:
         return active, again
 
     def _finish(self, state: Any, new: Any, h: float, cons: Constraints, active: contacts.Planes,
-                carried: np.ndarray, J: np.ndarray | None, limiter: Any, info: CollisionInfo) -> float:
+                carried: np.ndarray, J: np.ndarray | None, limiter: Any, info: CollisionInfo,
+                met: bool = False) -> float:
         """After the solves: inelastic contacts, strain limiting, the geometric fallback; the obstacles' work, J.
 
         The work: the contacts' impulses (normal, and tangential while sticking) and the kinetic friction
@@ -309,9 +320,11 @@ class Collider:
         """
         work = 0.0
         if cons.n_contacts and J is not None:
-            fr = cons.friction + cons.damping_force(new.v) if cons.damped else cons.friction
+            fr = cons.friction_force(new.v)
             work += float(np.einsum("ij,ij->", J[cons.contact] + h * fr, cons.velocity))
-        if len(active) and self.ctx.smooth > 0:
+        if len(active) and self.ctx.friction_newton and met:
+            pass                  # friction solved to convergence on its convex potential: it reversed nothing
+        elif len(active) and self.ctx.smooth > 0:
             friction.stop_reversed_smooth(active, cons, new)
         elif len(active):
             friction.stop_reversed(active, cons, new)
@@ -381,7 +394,10 @@ class Collider:
             offset[sel] = active.off[sel] + n[sel] @ c1
             u[sel] = (ob.motion.to_world(active.point[sel], t1) - ob.motion.to_world(active.point[sel], t0)) / h
         if self.ctx.smooth > 0:    # every contact held along its normal only, its friction a force of the solve
-            fr, damping = friction.smooth_model(active, self._mu[active.ob], n, self.ctx.smooth)
-            return pins.with_contacts(active.idx, n, offset, u, friction=fr, damping=damping)
+            mu = self._mu[active.ob]
+            fr, damping = friction.smooth_model(active, mu, n, self.ctx.smooth)
+            rub = mu * np.maximum(active.force, 0.0) if self.ctx.friction_newton else None
+            return pins.with_contacts(active.idx, n, offset, u, friction=fr, damping=damping, rub=rub,
+                                      slide_speed=self.ctx.smooth)
         stick, fr = friction.friction_forces(active, self._mu[active.ob])
         return pins.with_contacts(active.idx, n, offset, u, stick, fr)

@@ -90,6 +90,9 @@ class Context:
     newton: int = 1
     #: smoothed friction's sliding speed, m/s (0: Coulomb friction with sticking and sliding states)
     smooth: float = 0.0
+    #: the most Newton iterations of a contact step's solves when smoothed friction is solved to convergence
+    #: (``collision.friction_newton``; 0: linearised once, with its state rules)
+    friction_newton: int = 0
 
     @classmethod
     def build(cls, obstacles: list[dict[str, Any]], settings: dict[str, Any], model: Any) -> "Context":
@@ -100,7 +103,8 @@ class Context:
                    float(settings["restitution"]), int(settings["max_iterations"]), faces, cloth_edges(faces),
                    np.asarray(model.masses, dtype=float), inv_mass,
                    newton=int(settings.get("newton_iterations", COLLISION_NEWTON)),
-                   smooth=float(settings.get("friction_speed", 0.0)))
+                   smooth=float(settings.get("friction_speed", 0.0)),
+                   friction_newton=int(settings.get("friction_newton", 0)))
 
     @property
     def n(self) -> int:

@@ -202,6 +202,29 @@ def smooth_update(active: Planes, cons: Constraints, J: np.ndarray | None, v: np
     return changed
 
 
+def newton_update(active: Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray, h: float,
+                  mu: np.ndarray, eps: float, switched: np.ndarray) -> np.ndarray:
+    """Smoothed friction solved to convergence, after a solve (in place): the contacts' normal forces from its
+    impulse, and the tangential speeds and directions their next step's first solve is linearised at
+    (held below ``eps``). No state rules: the solve's Newton iterations found the friction at these normal
+    forces. Returns the contacts that had no normal force before and have friction now (their step is solved
+    again once with it: ``switched``, updated in place)."""
+    if J is None or not cons.n_contacts:
+        return np.zeros(len(active), dtype=bool)
+    jn = np.einsum("ij,ij->i", J[active.idx], cons.normal)
+    was_new = active.force == 0.0
+    active.force = jn / h
+    vt = tangential(v, cons)
+    speed = np.sqrt(np.einsum("ij,ij->i", vt, vt))
+    slow = speed <= eps
+    active.speed = np.where(slow, 0.0, speed)
+    active.slip = np.where(slow[:, None], 0.0, vt / np.maximum(speed, 1e-300)[:, None])
+    active.stick = slow
+    first = was_new & (mu * np.maximum(active.force, 0.0) > 0) & ~switched[active.idx]
+    switched[active.idx[first]] = True
+    return first
+
+
 def stop_reversed_smooth(active: Planes, cons: Constraints, after: Any) -> None:
     """Contacts whose kinetic friction the last solve reversed (it pushed along the motion) stop their
     tangential motion relative to the obstacle (velocities only: it only takes energy away) and are held."""

@@ -28,6 +28,15 @@ from ..solvers import Filter, filtered_pcg, make_preconditioner
 NEWTON_FORCING = 0.1
 #: Newton stops when a correction is this small relative to the step's velocity change (M-norm).
 NEWTON_TOLERANCE = 1e-2
+#: A step whose smoothed friction is solved to convergence (``collision.friction_newton``) is done when the
+#: friction's linearisation at the iterate is off the law by at most this fraction of the friction bounds
+#: (:meth:`Constraints.friction_error`), or its correction's mass-weighted rms speed is below this fraction of
+#: the sliding speed.
+FRICTION_TOLERANCE = 0.01
+#: The line search of such a step: at most this many force evaluations for the least potential along the
+#: Newton direction, stopping when its slope is this fraction of the slope at the start.
+LINE_ITERATIONS = 12
+LINE_TOLERANCE = 1e-3
 
 
 @dataclass
@@ -52,6 +61,10 @@ class StepInfo:
     #: rms over the free vertices (neither pinned nor in contact) of the step's nonlinear residual as an
     #: acceleration, ``|M (v1 - v_hat) - c_v F(x1, v1)| / (c_v m)``, m/s², when a linear step had contacts
     balance: float = 0.0
+    #: smoothed friction solved to convergence (``collision.friction_newton``): whether the step's friction
+    #: met its law (True), or the Newton iterations did not get it there and the step is the first solve's
+    #: (False); None without it
+    friction_converged: bool | None = None
 
     def absorb(self, other: "StepInfo") -> None:
         """Add another solve of the same step: iterations and times summed, residual the largest."""
@@ -212,7 +225,9 @@ class ImplicitIntegrator(Integrator):
         is the most Newton iterations: 1 is Baraff & Witkin's single linearisation, more continue with
         :meth:`_newton` from its result. ``start``: end velocities (N, 3) of an earlier attempt at this step
         to continue from with ``newton`` Newton iterations instead (their constrained components are first
-        set to what ``constraints`` prescribe).
+        set to what ``constraints`` prescribe). With smoothed friction solved to convergence (``c.rub``), the
+        Newton iterations follow the first solve only where its friction is off the law at its result
+        (:data:`FRICTION_TOLERANCE`).
         """
         c = self._pins if constraints is None else constraints
         info = StepInfo(newton_iterations=1)
@@ -236,13 +251,27 @@ class ImplicitIntegrator(Integrator):
             info.newton_iterations = 0
             return self._newton(state, h, c, scheme, v1, filt, max(iters, 1), info)
         dv = self._solve(A, b, z, filt, info, guess, self.contact_tolerance if c.n_contacts else None)
-        if iters > 1 and np.all(np.isfinite(dv)):
+        # smoothed friction solved to convergence: Newton only where the solve left a contact's friction off its
+        # linearisation (its speed across the sliding speed, or its direction turned)
+        nonlinear = c.n_contacts > 0 and c.nonlinear
+        if iters > 1 and np.all(np.isfinite(dv)) and not nonlinear:
             return self._newton(state, h, c, scheme, v + dv, filt, iters - 1, info)
         v1 = v + dv
         x1 = scheme.x_pred + scheme.beta * v1
         if c.n_contacts:   # A dv - b = c_v F_c: the constraint force F_c over the step h is the impulse
             info.constraint_impulse = (A @ dv.reshape(-1) - b.reshape(-1)).reshape(-1, 3) * (h / scheme.c_v)
             info.balance = self._balance(scheme, c, x1, v1, state.t + h)
+        if nonlinear:
+            info.friction_converged = bool(c.friction_error(v1) <= FRICTION_TOLERANCE)
+            if iters > 1 and not info.friction_converged and np.all(np.isfinite(dv)):
+                # Newton iterations where the solve left the friction off its law; kept only if they meet it
+                # (while the cloth folds they may not: the springs' projected Newton stalls there), else the
+                # step is this first solve's, for the caller's state rules
+                linear = (v1, info.constraint_impulse, info.balance, info.newton_iterations)
+                out, info = self._newton(state, h, c, scheme, v1.copy(), filt, iters - 1, info)
+                if info.friction_converged:
+                    return out, info
+                v1, info.constraint_impulse, info.balance, info.newton_iterations = linear
         return self._finish(x1, v1, state.t + h), info
 
     def _balance(self, scheme: Scheme, c: Constraints, x1: np.ndarray, v1: np.ndarray, t1: float) -> float:
@@ -260,9 +289,7 @@ class ImplicitIntegrator(Integrator):
     def _forces(self, x: np.ndarray, v: np.ndarray, t: float, c: Constraints) -> np.ndarray:
         f = self.model.forces(x, v, t)
         if c.n_contacts:
-            f[c.contact] += c.friction
-            if c.damped:
-                f[c.contact] += c.damping_force(v)
+            f[c.contact] += c.friction_force(v)
         return f
 
     def _conservative(self, x: np.ndarray, t: float) -> tuple[float, np.ndarray]:
@@ -296,19 +323,31 @@ class ImplicitIntegrator(Integrator):
         ``v_k + a d`` from ``a = 1`` until ``Phi`` decreases enough (Armijo, ``1e-4``), so no iteration can
         raise it. Stops when ``|a d| <= tolerance |v - v0|``, after ``iterations``, or when the line search
         fails (the iterate is kept). Returns the step's state and figures.
+
+        Smoothed friction solved to convergence (``c.rub`` given: ``collision.friction_newton``) is re-linearised
+        at every iterate (:meth:`Constraints.relinearized`, the Huber potential's exact Hessian), its
+        dissipation potential enters ``Phi`` exactly (not as an affine force), the step length is the least
+        ``Phi`` along ``d`` (:meth:`_line_minimum`, then the same Armijo test), and the iterations also stop once
+        the friction's linearisation holds at the iterate (:data:`FRICTION_TOLERANCE`).
         """
         M = self.model.masses[:, None]
         t1 = state.t + h
         cv = scheme.c_v
         A = None
+        nonlinear = c.n_contacts > 0 and c.nonlinear
+        met = False
+        # a correction this small (rms m/s) ends a friction solve too: a fraction of the sliding speed
+        floor = FRICTION_TOLERANCE * c.slide_speed * np.sqrt(float(np.sum(M))) if nonlinear else 0.0
         for _ in range(iterations):
             x = scheme.x_pred + cv * v
             A, f, _ = self._linearize(x, v, t1, scheme.c_x, cv, None, info)
             self._held_damping = None
+            f_model = f.copy()
             if c.n_contacts:
-                f[c.contact] += c.friction
+                c = c.relinearized(v)        # smoothed friction solved to convergence: its Hessian at v
+                lin_c = c
+                f[c.contact] += c.friction_force(v)
                 if c.damped:
-                    f[c.contact] += c.damping_force(v)
                     self._hold_damping(c, cv)
             self._lin = None          # the matrix no longer holds the step's first linearisation
             R = M * (v - scheme.v_hat) - cv * f
@@ -318,15 +357,26 @@ class ImplicitIntegrator(Integrator):
             if not np.isfinite(slope) or slope >= 0.0:
                 break
             u0, p0 = self._conservative(x, t1)
-            f_nc = f - p0                                      # affine in v: f_nc(v) = f_w + G v
-            Gd = self._forces(x, v + d, t1, c) - f             # G d
+            if nonlinear:
+                # the model's forces are affine in v (f_w + G v) but for the conservative part; the friction's
+                # dissipation potential enters the line search exactly (below)
+                f_nc = f_model - p0
+                Gd = self.model.forces(x, v + d, t1) - f_model
+                d0 = c.friction_potential(v)
+            else:
+                f_nc = f - p0                                      # affine in v: f_nc(v) = f_w + G v
+                Gd = self._forces(x, v + d, t1, c) - f             # G d
             dGd = float(np.einsum("ij,ij->", d, Gd))
             dMd = float(np.einsum("ij,ij->", M * d, d))
             lin = float(np.einsum("ij,ij->", M * (v - scheme.v_hat), d)) - cv * float(np.einsum("ij,ij->", f_nc, d))
             a = 1.0
+            if nonlinear:      # the friction's kinks along d: the minimiser on the segment, not a halving
+                a = self._line_minimum(x, v, d, c, cv, lin, dMd - cv * dGd, t1, slope)
             accepted = False
             for _ls in range(12):
                 dphi = a * lin + 0.5 * a * a * (dMd - cv * dGd) + self._potential(x + a * cv * d) - u0
+                if nonlinear:
+                    dphi += cv * (c.friction_potential(v + a * d) - d0)
                 if dphi <= 1e-4 * a * slope:
                     accepted = True
                     break
@@ -335,15 +385,58 @@ class ImplicitIntegrator(Integrator):
                 break
             v = v + a * d
             info.newton_iterations += 1
-            if a * np.sqrt(dMd) <= NEWTON_TOLERANCE * np.sqrt(float(np.einsum("ij,ij->", M * (v - state.v),
-                                                                                  v - state.v))):
+            step = a * np.sqrt(dMd)
+            met = nonlinear and (step <= floor or lin_c.friction_error(v) <= FRICTION_TOLERANCE)
+            if met or step <= NEWTON_TOLERANCE * np.sqrt(float(np.einsum("ij,ij->", M * (v - state.v),
+                                                                         v - state.v))):
                 break
+        if nonlinear:
+            info.friction_converged = met
         if c.n_contacts:   # the constraint force at the last iterate: F_c = (M (v - v_hat) - c_v F) / c_v
             x = scheme.x_pred + cv * v
             Rc = M * (v - scheme.v_hat) - cv * self._forces(x, v, t1, c)
             info.constraint_impulse = Rc * (h / cv)
         v1 = v.copy()
         return self._finish(scheme.x_pred + scheme.beta * v1, v1, t1), info
+
+    def _line_minimum(self, x: np.ndarray, v: np.ndarray, d: np.ndarray, c: Constraints, cv: float, lin: float,
+                      quad: float, t1: float, slope: float) -> float:
+        """Where the incremental potential is least along ``v + a d`` on ``0 < a <= 1`` (smoothed friction solved
+        to convergence; 1 when it still decreases there).
+
+        Its derivative ``g(a) = lin + a quad - c_v (f_c(x + a c_v d) . d + F_fr(v + a d) . d)`` (``f_c`` the
+        conservative forces, ``F_fr`` the friction law, ``lin`` and ``quad`` the affine forces' part) is negative
+        at 0 (``slope``); a Newton step from a sliding contact's constant kinetic force overshoots the point
+        where the contact stops (past it the friction turns): a halving line search then needs about
+        ``log2(speed / eps)`` iterations for it, the root of ``g`` (regula falsi, Illinois) a few force
+        evaluations.
+        """
+        def g(a: float) -> float:
+            _, fc = self._conservative(x + a * cv * d, t1)
+            fr = c.friction_force(v + a * d)
+            return lin + a * quad - cv * (float(np.einsum("ij,ij->", fc, d))
+                                          + float(np.einsum("ij,ij->", fr, d[c.contact])))
+        lo, g_lo, hi, g_hi = 0.0, slope, 1.0, g(1.0)
+        if not np.isfinite(g_hi) or g_hi <= 0.0:
+            return 1.0
+        side = 0
+        a = hi
+        for _ in range(LINE_ITERATIONS):
+            a = (lo * g_hi - hi * g_lo) / (g_hi - g_lo)
+            ga = g(a)
+            if abs(ga) <= LINE_TOLERANCE * abs(slope):
+                break
+            if ga > 0:
+                hi, g_hi = a, ga
+                if side == -1:
+                    g_lo *= 0.5
+                side = -1
+            else:
+                lo, g_lo = a, ga
+                if side == 1:
+                    g_hi *= 0.5
+                side = 1
+        return a
 
     def _solve(self, A, b: np.ndarray, z: np.ndarray, filt: Filter, info: StepInfo,
                guess: np.ndarray | None = None, tolerance: float | None = None) -> np.ndarray:
