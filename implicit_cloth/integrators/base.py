@@ -289,8 +289,18 @@ class ImplicitIntegrator(Integrator):
     def _forces(self, x: np.ndarray, v: np.ndarray, t: float, c: Constraints) -> np.ndarray:
         f = self.model.forces(x, v, t)
         if c.n_contacts:
-            f[c.contact] += c.friction_force(v)
+            self._add_friction(f, c, v)
         return f
+
+    @staticmethod
+    def _add_friction(f: np.ndarray, c: Constraints, v: np.ndarray) -> None:
+        """Add the contacts' friction force at ``v`` to ``f`` (in place; the linearised one term by term)."""
+        if c.nonlinear:
+            f[c.contact] += c.friction_force(v)
+            return
+        f[c.contact] += c.friction
+        if c.damped:
+            f[c.contact] += c.damping_force(v)
 
     def _conservative(self, x: np.ndarray, t: float) -> tuple[float, np.ndarray]:
         """Potential energy (J) and conservative force (N) of gravity and the springs' elasticity at ``x``."""
@@ -346,7 +356,7 @@ class ImplicitIntegrator(Integrator):
             if c.n_contacts:
                 c = c.relinearized(v)        # smoothed friction solved to convergence: its Hessian at v
                 lin_c = c
-                f[c.contact] += c.friction_force(v)
+                self._add_friction(f, c, v)
                 if c.damped:
                     self._hold_damping(c, cv)
             self._lin = None          # the matrix no longer holds the step's first linearisation
