@@ -36,6 +36,18 @@ def _empty(*shape: int) -> np.ndarray:
     return np.zeros((0, *shape))
 
 
+def huber_linearization(rub: np.ndarray, normal: np.ndarray, slip: np.ndarray, speed: np.ndarray,
+                        eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Smoothed (Huber) Coulomb friction of bound ``rub`` (``mu N``, K) linearised at the sliding direction
+    ``slip`` (unit, on the tangent plane of ``normal``; 0 where the contact is held) and ``speed``:
+    ``(force, damping)``. Held (or below ``eps``): no constant force and the damping ``mu N / eps`` on the
+    tangent plane; sliding: the kinetic force ``-mu N slip`` with the damping ``mu N / speed`` across ``slip``
+    (the Huber potential's exact Hessian; positive semi-definite)."""
+    P = np.eye(3)[None] - normal[:, :, None] * normal[:, None, :]
+    k = rub / np.maximum(speed, eps)
+    return -rub[:, None] * slip, k[:, None, None] * (P - slip[:, :, None] * slip[:, None, :])
+
+
 @dataclass(frozen=True)
 class Constraints:
     """Pins and contacts of one step (module docstring).
@@ -122,11 +134,18 @@ class Constraints:
         """Whether the contacts' smoothed friction is solved to convergence (``rub`` given)."""
         return len(self.rub) > 0
 
-    def _slip(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The contacts' tangential velocities relative to the obstacle at ``v`` (K, 3) and their speeds (K,)."""
+    def tangential(self, v: np.ndarray) -> np.ndarray:
+        """The contacts' tangential velocities (K, 3) relative to the obstacle, from the cloth velocities ``v``."""
         rel = v[self.contact] - self.velocity
-        vt = rel - np.einsum("ij,ij->i", rel, self.normal)[:, None] * self.normal
+        return rel - np.einsum("ij,ij->i", rel, self.normal)[:, None] * self.normal
+
+    def _slip(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`tangential` and its speeds (K,)."""
+        vt = self.tangential(v)
         return vt, np.sqrt(np.einsum("ij,ij->i", vt, vt))
+
+    def _linearised_force(self, v: np.ndarray) -> np.ndarray:
+        return self.friction + self.damping_force(v) if self.damped else self.friction
 
     def friction_force(self, v: np.ndarray) -> np.ndarray:
         """The contacts' friction force at the cloth velocities ``v`` (K, 3), N: with ``rub``, smoothed Coulomb
@@ -134,7 +153,7 @@ class Constraints:
         if self.nonlinear:
             vt, s = self._slip(v)
             return -(self.rub / np.maximum(s, self.slide_speed))[:, None] * vt
-        return self.friction + self.damping_force(v) if self.damped else self.friction
+        return self._linearised_force(v)
 
     def friction_potential(self, v: np.ndarray) -> float:
         """Dissipation potential of the smoothed friction at ``v``, W: ``sum mu N f(|v_t|)`` with Huber's
@@ -152,8 +171,7 @@ class Constraints:
         every contact's speed stayed in the branch and direction it was linearised in)."""
         if not self.nonlinear:
             return 0.0
-        lin = self.friction + self.damping_force(v) if self.damped else self.friction
-        err = self.friction_force(v) - lin
+        err = self.friction_force(v) - self._linearised_force(v)
         bound = float(np.dot(self.rub, self.rub))
         return float(np.sqrt(np.einsum("ij,ij->", err, err) / bound)) if bound > 0 else 0.0
 
@@ -165,14 +183,9 @@ class Constraints:
         if not self.nonlinear:
             return self
         vt, s = self._slip(v)
-        n = self.normal
-        e = self.slide_speed
-        slow = s <= e
-        t = np.where(slow[:, None], 0.0, vt / np.maximum(s, 1e-300)[:, None])
-        k = self.rub / np.maximum(s, e)
-        P = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
-        D = k[:, None, None] * (P - t[:, :, None] * t[:, None, :])
-        return replace(self, friction=-self.rub[:, None] * t, damping=D)
+        t = np.where((s <= self.slide_speed)[:, None], 0.0, vt / np.maximum(s, 1e-300)[:, None])
+        force, D = huber_linearization(self.rub, self.normal, t, s, self.slide_speed)
+        return replace(self, friction=force, damping=D)
 
     def damping_force(self, v: np.ndarray) -> np.ndarray:
         """The contacts' friction damping force at the cloth velocities ``v`` (N, 3): ``-damping (v - u)``,

@@ -1,14 +1,15 @@
 """Smoothed friction solved to convergence within the step (``collision.friction_newton``): the friction
-law's closed forms on a floor, step by step (a scalar root found in this file by bisection, not the engine's
-Newton), the smoothed-friction tests again with it, the key's validation, and the energy judged from the
-states as in test_contact_energy."""
+law's closed form on a floor, step by step (a scalar root found in this file by bisection, not the engine's
+Newton), drapes at rest, the key's validation, and the energy judged from the states as in
+test_contact_energy. (The tilted-plane closed forms and the drops on four shapes run with it in
+test_smoothed_friction.)"""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from test_collision import TH, cloth_scene
-from test_contact_energy import MASS, G, assert_resting_on_the_sphere, drop_scene, inside_depth, judged_run
+from test_contact_energy import assert_resting_on_the_sphere, drop_scene, judged_run
 
 import implicit_cloth as ic
 
@@ -59,44 +60,6 @@ def test_a_cloth_dragged_by_a_floor_follows_the_friction_law_through_the_step_it
             caught = k
     assert caught is not None and 15 < caught < 25          # mu g h = 4.9 cm/s a step: about 20 steps
     assert np.allclose(sim.positions[:, 2], TH, atol=1e-9)
-
-
-@pytest.mark.parametrize("tan", [0.3, 0.8])
-def test_tilted_plane_creeps_below_and_slides_above_the_friction_angle(tan):
-    """As test_smoothed_friction's, solved to convergence: the discrete constant-acceleration distance above
-    the friction angle, the viscous creep eps tan(theta) / mu below it."""
-    mu, T, h, g = 0.5, 0.5, 1 / 60, 9.81
-    th = np.arctan(tan)
-    sc = cloth_scene({"shape": "plane", "point": [0, 0, 0], "normal": [0, 0, 1]}, dt=h, duration=T, res=8,
-                     size=0.3, center=(0, 0, TH), friction=mu, gravity=(g * np.sin(th), 0.0, -g * np.cos(th)),
-                     collision=dict(NEWTON))
-    sc["effects"].pop("drag")
-    sim = ic.Simulator(sc)
-    x0 = sim.positions.copy()
-    traj = sim.run()
-    d = (sim.positions - x0).mean(axis=0)
-    n = round(T / h)
-    a = g * (np.sin(th) - mu * np.cos(th))
-    if a > 0:
-        assert d[0] == pytest.approx(a * h * h * n * (n + 1) / 2, rel=1e-6)
-    else:
-        assert d[0] == pytest.approx(EPS * tan / mu * T, rel=1e-2)
-    assert traj.report["status"] == "ok", traj.report["reason"]
-
-
-@pytest.mark.parametrize("shape", ["sphere", "box_edge", "cone", "capsule"])
-def test_drop_with_friction_solved_in_the_step_creates_no_energy(shape):
-    """dt = 1/30 s, 12² cloth: no energy rise above the start (2 % of m g (1 m)), nothing inside the obstacle,
-    status ok, no work by a static obstacle."""
-    scene = drop_scene(shape)
-    scene["collision"].update(NEWTON)
-    sim, traj, e0, frames = judged_run(scene)
-    assert max(e for _, e, _ in frames) - e0 <= 0.02 * MASS * G * 1.0
-    spec = sim.scene.data["obstacles"][0]
-    assert max(inside_depth(shape, spec, x, None) for _, _, x in frames) <= 0.2 * TH
-    assert traj.report["status"] == "ok", traj.report["reason"]
-    assert traj.report["collision"]["work"] == 0.0
-    assert frames[-1][1] < e0
 
 
 def test_a_drape_with_friction_solved_in_the_step_comes_to_rest_on_the_sphere():

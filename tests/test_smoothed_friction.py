@@ -11,10 +11,13 @@ from test_contact_energy import MASS, G, assert_resting_on_the_sphere, drop_scen
 import implicit_cloth as ic
 
 EPS = 1e-4          # m/s
+#: the smoothed friction with its state rules, and solved within the step (collision.friction_newton)
+MODES = {"state rules": {"friction_speed": EPS}, "newton": {"friction_speed": EPS, "friction_newton": 6}}
 
 
+@pytest.mark.parametrize("mode", list(MODES))
 @pytest.mark.parametrize("tan", [0.3, 0.45, 0.55, 0.8])
-def test_tilted_plane_creeps_at_the_closed_form_below_and_slides_above_the_friction_angle(tan):
+def test_tilted_plane_creeps_at_the_closed_form_below_and_slides_above_the_friction_angle(tan, mode):
     """Gravity tilted by theta, mu = 0.5. Above the friction angle backward Euler slides the cloth by the
     discrete constant-acceleration distance a h^2 n (n + 1) / 2, a = g (sin theta - mu cos theta), as with
     Coulomb's states; below it the viscous branch holds it, creeping at the speed where the viscous force
@@ -24,7 +27,7 @@ def test_tilted_plane_creeps_at_the_closed_form_below_and_slides_above_the_frict
     th = np.arctan(tan)
     sc = cloth_scene({"shape": "plane", "point": [0, 0, 0], "normal": [0, 0, 1]}, dt=h, duration=T, res=8,
                      size=0.3, center=(0, 0, TH), friction=mu, gravity=(g * np.sin(th), 0.0, -g * np.cos(th)),
-                     collision={"friction_speed": EPS})
+                     collision=dict(MODES[mode]))
     sc["effects"].pop("drag")
     sim = ic.Simulator(sc)
     x0 = sim.positions.copy()
@@ -86,12 +89,13 @@ def test_friction_speed_zero_is_coulombs_states_bit_for_bit():
     assert np.array_equal(a.positions, b.positions) and np.array_equal(a.velocities, b.velocities)
 
 
+@pytest.mark.parametrize("mode", list(MODES))
 @pytest.mark.parametrize("shape", ["sphere", "box_edge", "cone", "capsule"])
-def test_drop_with_smoothed_friction_creates_no_energy(shape):
+def test_drop_with_smoothed_friction_creates_no_energy(shape, mode):
     """dt = 1/30 s, 12² cloth: the energy never rises above the start (by 2 % of m g (1 m), as with Coulomb's
     states), the cloth never enters the obstacle, and the report says ok with no work by a static obstacle."""
     scene = drop_scene(shape)
-    scene["collision"]["friction_speed"] = EPS
+    scene["collision"].update(MODES[mode])
     sim, traj, e0, frames = judged_run(scene)
     assert max(e for _, e, _ in frames) - e0 <= 0.02 * MASS * G * 1.0
     spec = sim.scene.data["obstacles"][0]

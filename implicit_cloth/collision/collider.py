@@ -322,12 +322,12 @@ class Collider:
         if cons.n_contacts and J is not None:
             fr = cons.friction_force(new.v)
             work += float(np.einsum("ij,ij->", J[cons.contact] + h * fr, cons.velocity))
-        if len(active) and self.ctx.friction_newton and met:
-            pass                  # friction solved to convergence on its convex potential: it reversed nothing
-        elif len(active) and self.ctx.smooth > 0:
-            friction.stop_reversed_smooth(active, cons, new)
-        elif len(active):
-            friction.stop_reversed(active, cons, new)
+        # (a friction solved to its law on its convex potential reversed nothing)
+        if len(active) and not (self.ctx.friction_newton and met):
+            if self.ctx.smooth > 0:
+                friction.stop_reversed_smooth(active, cons, new)
+            else:
+                friction.stop_reversed(active, cons, new)
         if len(active):
             work += friction.inelastic(active, cons, carried, state, new, self.ctx.restitution, self.ctx.masses)
         if limiter is not None:

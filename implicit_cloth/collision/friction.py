@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ..constraints import Constraints
+from ..constraints import Constraints, huber_linearization
 from .contacts import Planes
 
 
@@ -125,12 +125,6 @@ def inelastic(active: Planes, cons: Constraints, carried: np.ndarray, before: An
 
 
 # --------------------------------------------------------------------------- smoothed friction
-def tangential(v: np.ndarray, cons: Constraints) -> np.ndarray:
-    """The contacts' tangential velocities (K, 3) relative to the obstacle, from the cloth velocities ``v``."""
-    rel = v[cons.contact] - cons.velocity
-    return rel - np.einsum("ij,ij->i", rel, cons.normal)[:, None] * cons.normal
-
-
 def smooth_model(active: Planes, mu: np.ndarray, normal: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
     """Smoothed Coulomb friction of the contacts, linearised as each one's state says: ``(force, damping)``.
 
@@ -144,16 +138,13 @@ def smooth_model(active: Planes, mu: np.ndarray, normal: np.ndarray, eps: float)
     last solve that held it (0 for a new contact: no friction until a solve has held it). Returns the constant
     forces (K, 3), N, and the symmetric positive semi-definite damping blocks (K, 3, 3), N*s/m.
     """
-    N = mu * np.maximum(active.force, 0.0)
-    P = np.eye(3)[None] - normal[:, :, None] * normal[:, None, :]
     held = active.stick | (active.speed <= 0.0)
     t = active.slip - np.einsum("ij,ij->i", active.slip, normal)[:, None] * normal   # on this step's plane
     tn = np.sqrt(np.einsum("ij,ij->i", t, t))
     held |= tn < 1e-12
     t = np.where(held[:, None], 0.0, t / np.maximum(tn, 1e-300)[:, None])
-    k = N / np.where(held, eps, np.maximum(active.speed, eps))
-    D = k[:, None, None] * (P - t[:, :, None] * t[:, None, :])
-    return -N[:, None] * t, D
+    return huber_linearization(mu * np.maximum(active.force, 0.0), normal, t,
+                               np.where(held, 0.0, active.speed), eps)
 
 
 def smooth_update(active: Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray, h: float,
@@ -177,7 +168,7 @@ def smooth_update(active: Planes, cons: Constraints, J: np.ndarray | None, v: np
     jn = np.einsum("ij,ij->i", J[active.idx], n)
     was_new = active.force == 0.0
     active.force = jn / h
-    vt = tangential(v, cons)
+    vt = cons.tangential(v)
     speed = np.sqrt(np.einsum("ij,ij->i", vt, vt))
     rub = mu * np.maximum(active.force, 0.0) > 0
     free = ~switched[active.idx] & rub
@@ -214,7 +205,7 @@ def newton_update(active: Planes, cons: Constraints, J: np.ndarray | None, v: np
     jn = np.einsum("ij,ij->i", J[active.idx], cons.normal)
     was_new = active.force == 0.0
     active.force = jn / h
-    vt = tangential(v, cons)
+    vt = cons.tangential(v)
     speed = np.sqrt(np.einsum("ij,ij->i", vt, vt))
     slow = speed <= eps
     active.speed = np.where(slow, 0.0, speed)
@@ -230,7 +221,7 @@ def stop_reversed_smooth(active: Planes, cons: Constraints, after: Any) -> None:
     tangential motion relative to the obstacle (velocities only: it only takes energy away) and are held."""
     if not cons.n_contacts or not np.any(cons.friction):
         return
-    rel_t = tangential(after.v, cons)
+    rel_t = cons.tangential(after.v)
     back = np.einsum("ij,ij->i", rel_t, cons.friction) > 0
     if not np.any(back):
         return

@@ -355,7 +355,6 @@ class ImplicitIntegrator(Integrator):
             f_model = f.copy()
             if c.n_contacts:
                 c = c.relinearized(v)        # smoothed friction solved to convergence: its Hessian at v
-                lin_c = c
                 self._add_friction(f, c, v)
                 if c.damped:
                     self._hold_damping(c, cv)
@@ -396,7 +395,7 @@ class ImplicitIntegrator(Integrator):
             v = v + a * d
             info.newton_iterations += 1
             step = a * np.sqrt(dMd)
-            met = nonlinear and (step <= floor or lin_c.friction_error(v) <= FRICTION_TOLERANCE)
+            met = nonlinear and (step <= floor or c.friction_error(v) <= FRICTION_TOLERANCE)
             if met or step <= NEWTON_TOLERANCE * np.sqrt(float(np.einsum("ij,ij->", M * (v - state.v),
                                                                          v - state.v))):
                 break
