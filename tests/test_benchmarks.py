@@ -94,6 +94,30 @@ def test_contact_energy_quick_via_cli(tmp_path):
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
 
 
+def test_rest_reference_quick_via_cli(tmp_path, capsys):
+    """``implicit-cloth bench rest_reference --quick``: a row of the contact table at its step, at the finer
+    steps and with symplectic Euler, each run's speed at every kept frame, and a verdict per row."""
+    from implicit_cloth.cli import main
+
+    assert main(["bench", "rest_reference", "--quick", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "rest_reference.json").read_text())
+    assert res["benchmark"] == "rest_reference" and res["quick"] is True
+    runs = res["runs"]
+    assert [(r["integrator"], r["factor"]) for r in runs] == [("backward_euler", 1), ("backward_euler", 2),
+                                                               ("symplectic_euler", None)]
+    assert runs[1]["dt"] == runs[0]["dt"] / 2
+    for r in runs:
+        assert len(r["t"]) == len(r["vrms"]) >= 10 and r["t"] == sorted(r["t"]) and r["vrms_end"] >= 0
+        assert r["vrms"][-1] == r["vrms_end"] and r["status"] in ("ok", "warning")
+    md = (tmp_path / "rest_reference.md").read_text()
+    assert "| capsule:8:30 | symplectic Euler, dt 0.0004 s |" in md and "* capsule:8:30: " in md
+    assert (tmp_path / "rest_reference.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # a bad row names the option and the value: argparse's usage error, exit code 2
+    assert main(["bench", "rest_reference", "--rows", "torus:8:30", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "argument --rows: 'torus:8:30' is not SHAPE:N:1/DT (unknown shape 'torus'" in err
+
+
 def test_vs_blender_skips_without_blender_and_its_worker_reports(tmp_path):
     """Without Blender on PATH the comparison says so and exits 0; the worker that times our side prints one
     RESULT record (a small cloth, fixed steps) with the fields the comparison reads."""
