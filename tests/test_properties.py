@@ -249,6 +249,13 @@ def _set(d, path, value):
     d[keys[-1]] = value
 
 
+def _not_a_table(table: str, value) -> str:
+    """The expected start of the error for ``value`` where the table ``table`` belongs."""
+    if table == "cloth" and isinstance(value, (list, tuple)):     # [[cloth]]: an array of cloth tables
+        return "cloth[0]: must be a table, got " if value else "cloth: must be a table or a non-empty"
+    return f"{table}: must be a table, got "
+
+
 @st.composite
 def invalid_scenes(draw):
     """(scene, expected start of the SceneError message)."""
@@ -276,8 +283,9 @@ def invalid_scenes(draw):
                   "simulation.adaptive", "simulation.strain_limit"]
         tables += [f"cloth.springs.{k}" for k in sc.SPRING_KINDS]
         table = draw(st.sampled_from(tables))
-        _set(scene, table, draw(st.sampled_from([5, 1.5, "x", [1, 2], [], True, None, ("a",)])))
-        return scene, f"{table}: must be a table, got "
+        value = draw(st.sampled_from([5, 1.5, "x", [1, 2], [], True, None, ("a",)]))
+        _set(scene, table, value)
+        return scene, _not_a_table(table, value)
     if kind == "missing":
         options = [("cloth", "cloth: missing")]
         if "material" not in cloth:
