@@ -73,6 +73,16 @@ def progress(iterable=None, total: int | None = None, desc: str | None = None):
     return tqdm(iterable, total=total, desc=desc, disable=not sys.stderr.isatty(), leave=False)
 
 
+def run_all(fn, items: list, workers: int = 1, desc: str | None = None) -> list:
+    """``[fn(item) for item in items]``, in ``workers`` processes when more than one (results in order)."""
+    if workers > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(workers) as pool:
+            return list(progress(pool.map(fn, items), total=len(items), desc=desc))
+    return [fn(item) for item in progress(items, desc=desc)]
+
+
 def save_png(fig, path: Path, dpi: int = 120) -> None:
     """Write a matplotlib figure to ``path`` as PNG, atomically."""
     atomic_write(Path(path), lambda f: fig.savefig(f, format="png", dpi=dpi))

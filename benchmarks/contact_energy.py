@@ -59,11 +59,10 @@ import math
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from _common import ROOT, ic, machine, progress, save_png, write_outputs
+from _common import ROOT, ic, machine, run_all, save_png, write_outputs
 
 G = 9.81
 MASS = 0.1
@@ -268,14 +267,21 @@ def finer(spec: dict, folder: Path) -> dict:
             "finer_rest_from": seen["moving_at"] if vrms < REST_SPEED else None}
 
 
+def friction_settings(args: argparse.Namespace) -> dict:
+    """The ``[collision]`` friction keys of ``--friction-speed`` and ``--friction-newton`` (empty: Coulomb's states)."""
+    if args.friction_speed <= 0:
+        return {}
+    out = {"friction_speed": args.friction_speed}
+    if args.friction_newton:
+        out["friction_newton"] = args.friction_newton
+    return out
+
+
 def specs(args: argparse.Namespace, mesh_dir: Path) -> list[dict]:
     base = {"mesh_dir": str(mesh_dir), "material": None, "speed": None, "finer": args.finer}
     out = _specs(args, base)
-    if args.friction_speed > 0:
-        for spec in out:
-            spec["scene"]["collision"]["friction_speed"] = args.friction_speed
-            if args.friction_newton:
-                spec["scene"]["collision"]["friction_newton"] = args.friction_newton
+    for spec in out:
+        spec["scene"]["collision"].update(friction_settings(args))
     if args.contact_tolerance:
         for spec in out:
             spec["scene"].setdefault("solver", {})["contact_tolerance"] = args.contact_tolerance
@@ -463,12 +469,7 @@ def main(argv: list[str] | None = None) -> int:
         args.duration, args.moving_duration = 1.0, 0.3
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        rows_in = specs(args, mesh_files(Path(tmp)))
-        if args.workers > 1:
-            with ProcessPoolExecutor(args.workers) as pool:
-                rows = list(progress(pool.map(run_row, rows_in), total=len(rows_in), desc="contact"))
-        else:
-            rows = [run_row(s) for s in progress(rows_in, desc="contact")]
+        rows = run_all(run_row, specs(args, mesh_files(Path(tmp))), args.workers, "contact")
     res = {"benchmark": "contact_energy", "quick": args.quick, "machine": machine(), "duration": args.duration,
            "moving_duration": args.moving_duration, "friction_speed": args.friction_speed,
            "friction_newton": args.friction_newton,

@@ -41,17 +41,17 @@ import argparse
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from _common import ROOT, ic, machine, progress, save_png, write_outputs
+from _common import ROOT, ic, machine, run_all, save_png, write_outputs
 from contact_energy import (
     ON_DISTANCE,
     REST_SPEED,
     SHAPES,
     G,
     Judge,
+    friction_settings,
     mesh_files,
     obstacle_distance,
     rms_speed,
@@ -116,11 +116,7 @@ def run(spec: dict) -> dict:
 
 
 def specs(args: argparse.Namespace, mesh_dir: Path) -> list[dict]:
-    collision = {}
-    if args.friction_speed > 0:
-        collision["friction_speed"] = args.friction_speed
-        if args.friction_newton:
-            collision["friction_newton"] = args.friction_newton
+    collision = friction_settings(args)
     out = []
     for text in args.rows:
         shape, n, dt = parse_row(text)
@@ -225,11 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         todo = sorted(specs(args, mesh_files(Path(tmp))), key=lambda s: s["n"] ** 3 / s["dt"], reverse=True)
-        if args.workers > 1:
-            with ProcessPoolExecutor(args.workers) as pool:
-                runs = list(progress(pool.map(run, todo), total=len(todo), desc="reference"))
-        else:
-            runs = [run(s) for s in progress(todo, desc="reference")]
+        runs = run_all(run, todo, args.workers, "reference")
     order = {row: i for i, row in enumerate(args.rows)}
     runs.sort(key=lambda r: (order[r["row"]], r["integrator"] != "backward_euler", r["factor"] or 0))
     res = {"benchmark": "rest_reference", "quick": args.quick, "machine": machine(), "duration": args.duration,
