@@ -52,6 +52,8 @@ from contact_energy import (
     G,
     Judge,
     friction_settings,
+    friction_text,
+    friction_used,
     mesh_files,
     obstacle_distance,
     rms_speed,
@@ -155,9 +157,7 @@ def markdown(res: dict) -> str:
     lines = [f"Rows of the contact table run at finer steps and with an explicit reference, by "
              f"`benchmarks/rest_reference.py` ({'quick' if res['quick'] else 'full'} run, {res['wall_s']:.0f} s; "
              f"{res['duration']:g} s of the contact table's static scene"
-             + (f", collision.friction_speed = {res['friction_speed']:g}" if res["friction_speed"] else "")
-             + (f", friction_newton = {res['friction_newton']}" if res["friction_newton"] else "")
-             + "). rms: the rms vertex speed; on it: that of the vertices within 2 thicknesses of the obstacle;"
+             + ")." + friction_text(res) + " rms: the rms vertex speed; on it: that of the vertices within 2 thicknesses of the obstacle;"
              " rise: largest E(t) - E(0) over m g (1 m), from the states.", "",
              "| row | run | rms at 1 s | rms at 2 s | rms at the end | on it at the end | rise | substeps/frame "
              "| CPU s | report |",
@@ -211,8 +211,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--explicit-max-n", type=int, default=32, metavar="N",
                    help="the explicit reference only on grids up to N x N")
     p.add_argument("--duration", type=float, default=3.0)
-    p.add_argument("--friction-speed", type=float, default=0.0, metavar="EPS")
-    p.add_argument("--friction-newton", type=int, default=0, metavar="K")
+    p.add_argument("--friction-speed", type=float, default=None, metavar="EPS",
+                   help="collision.friction_speed, m/s (0: Coulomb's states; default: the library's)")
+    p.add_argument("--friction-newton", type=int, default=None, metavar="K")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = p.parse_args(argv)
@@ -225,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     order = {row: i for i, row in enumerate(args.rows)}
     runs.sort(key=lambda r: (order[r["row"]], r["integrator"] != "backward_euler", r["factor"] or 0))
     res = {"benchmark": "rest_reference", "quick": args.quick, "machine": machine(), "duration": args.duration,
-           "friction_speed": args.friction_speed, "friction_newton": args.friction_newton,
+           **dict(zip(("friction_speed", "friction_newton"), friction_used(args), strict=True)),
            "wall_s": time.perf_counter() - t0, "runs": runs}
     args.out.mkdir(parents=True, exist_ok=True)
     write_outputs(args.out, "rest_reference", res, markdown(res))

@@ -40,7 +40,7 @@ FPS = 60
 SIZES = {"hanging": [32, 64, 128, 256], "drape": [32, 64, 128]}
 
 
-def scene(kind: str, n: int, fixed: bool = False, friction_speed: float = 0.0) -> dict:
+def scene(kind: str, n: int, fixed: bool = False, friction_speed: float | None = None) -> dict:
     """The benchmark scene as an implicit_cloth scene table (see the module docstring)."""
     springs = {"structural": {"stiffness": 1000.0, "damping": 0.01},
                "shear": {"stiffness": 1000.0 / 3.0, "damping": 0.01},
@@ -53,7 +53,7 @@ def scene(kind: str, n: int, fixed: bool = False, friction_speed: float = 0.0) -
     if kind == "drape":
         d["obstacles"] = [{"shape": "sphere", "radius": 0.3, "center": [0.0, 0.0, 0.0], "friction": 0.3}]
         d["collision"] = {"thickness": 0.005}
-        if friction_speed > 0:
+        if friction_speed is not None:
             d["collision"]["friction_speed"] = friction_speed
     if fixed:
         d["simulation"]["adaptive"] = {"enabled": False}
@@ -61,7 +61,7 @@ def scene(kind: str, n: int, fixed: bool = False, friction_speed: float = 0.0) -
 
 
 def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: int | None,
-             friction_speed: float = 0.0) -> dict:
+             friction_speed: float | None = None) -> dict:
     """One run of ours in this process (the worker): the RESULT record."""
     import numpy as np
 
@@ -114,7 +114,7 @@ def ours(kind: str, n: int, a: argparse.Namespace) -> dict:
         cmd += ["--tolerance", str(a.tolerance)]
     if a.threads:
         cmd += ["--threads", str(a.threads)]
-    if a.friction_speed:
+    if a.friction_speed is not None:
         cmd += ["--friction-speed", str(a.friction_speed)]
     return _result(subprocess.run(cmd, capture_output=True, text=True, timeout=a.timeout))
 
@@ -151,8 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tolerance", type=float, default=None, help="ours: solver tolerance (default 1e-3)")
     p.add_argument("--threads", type=int, default=None, help="ours: solver threads (default: the library's)")
     p.add_argument("--timeout", type=float, default=3600.0, help="s per run")
-    p.add_argument("--friction-speed", type=float, default=0.0, metavar="EPS",
-                   help="ours, drape: collision.friction_speed, m/s (smoothed friction; default 0: Coulomb's states)")
+    p.add_argument("--friction-speed", type=float, default=None, metavar="EPS",
+                   help="ours, drape: collision.friction_speed, m/s (0: Coulomb's states; default: the library's)")
     p.add_argument("--out", default=str(HERE / "results"))
     p.add_argument("--name", default="vs_blender", help="output file stem (default vs_blender)")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)

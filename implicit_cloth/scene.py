@@ -363,18 +363,18 @@ def _collision(d: Any) -> dict[str, Any]:
         out["max_iterations"] = integer("collision.max_iterations", d["max_iterations"], lo=1, hi=1000)
     if "newton_iterations" in d:
         out["newton_iterations"] = integer("collision.newton_iterations", d["newton_iterations"], lo=1, hi=100)
-    # smoothed friction: in the normalised table only when asked for (a scene without it is unchanged)
+    # friction: smoothed and solved within each step unless the scene says otherwise (the defaults are
+    # collision.context.FRICTION_SPEED and FRICTION_NEWTON); the keys are in the normalised table only when
+    # given, so a scene without them is unchanged. friction_speed = 0: Coulomb's sticking and sliding states.
     if "friction_speed" in d:
-        speed = number("collision.friction_speed", d["friction_speed"], lo=0.0)
-        if speed > 0:
-            out["friction_speed"] = speed
+        out["friction_speed"] = number("collision.friction_speed", d["friction_speed"], lo=0.0)
     if "friction_newton" in d:
         iters = integer("collision.friction_newton", d["friction_newton"], lo=0, hi=100)
-        if iters > 0 and "friction_speed" not in out:
+        if iters > 0 and out.get("friction_speed", 1.0) == 0:
             raise SceneError(f"collision.friction_newton: {iters} Newton iterations of smoothed friction, but "
-                             "collision.friction_speed (its sliding speed, m/s) is not given or 0")
-        if iters > 0:
-            out["friction_newton"] = iters
+                             "collision.friction_speed is 0 (Coulomb's sticking and sliding states, which have "
+                             "no smoothed friction to solve); give a sliding speed > 0 or leave friction_newton out")
+        out["friction_newton"] = iters
     # self-collision's keys appear in the normalised table only when it is on (a scene without it is unchanged)
     if boolean("collision.self_collision", d.get("self_collision", False)):
         out["self_collision"] = True

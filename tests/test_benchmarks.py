@@ -76,10 +76,12 @@ def test_contact_energy_quick_via_cli(tmp_path):
             assert r["max_stretch"] >= 1.0
     # a row still moving after its 1 s is run again at a quarter of its step, and the table says what that gave
     still = [r for r in res["rows"] if r["group"] == "static" and r["end"] == "still moving"]
-    assert still and all(r["finer_dt"] == r["dt"] / 4 and r["finer_vrms_end"] >= 0 for r in still)
-    assert all("finer_dt" not in r for r in res["rows"] if r not in still)
+    assert still and all([f["dt"] for f in r["finer_runs"]] == [r["dt"] / 4] and r["finer_runs"][0]["vrms_end"] >= 0
+                         for r in still)
+    assert all("finer_runs" not in r for r in res["rows"] if r not in still)
     md = (tmp_path / "contact_energy.md").read_text()
-    assert "| static | sphere | 12² |" in md and "Moving sphere" in md and "run again at a finer step" in md
+    assert "| static | sphere | 12² |" in md and "Moving sphere" in md and "run again at finer steps" in md
+    assert "meeting the goal" in md
     # merging parts: a row run again in a later part replaces the earlier one
     again = dict(res, rows=[dict(still[0], ms_per_frame=-1.0)])
     (tmp_path / "again.json").write_text(json.dumps(again))
@@ -134,3 +136,29 @@ def test_vs_blender_skips_without_blender_and_its_worker_reports(tmp_path):
     assert res["scene"] == "drape" and res["n"] == 8 and res["fixed_steps"] is True and res["finite"]
     assert res["ms_per_frame"] > 0 and res["iterations_per_frame"] > 0 and res["solves_per_frame"] >= 1
     assert res["zmin"] > -0.35       # on the sphere (r = 0.3), not through it
+
+
+def test_contact_energy_goal_per_row():
+    """The contact table's goal per static row: a rise, a slide or creep on the obstacle misses it; a row still
+    moving meets it only where its finest finer run moves on too (the scene's motion), and rows of the script's
+    earlier versions (one finer run as ``finer_*`` keys) are judged the same way."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import contact_energy as ce
+
+    base = {"rise_frac": 0.0, "end": "resting on it", "on_vrms_end": 1e-4, "dt": 1 / 60, "vrms_end": 0.005}
+    assert ce.goal(base) == (True, "at rest")
+    assert not ce.goal(dict(base, rise_frac=0.03))[0]
+    assert ce.goal(dict(base, end="slid off")) == (False, "slid off")
+    moving = dict(base, end="still moving", vrms_end=0.015)
+    assert ce.goal(moving) == (False, "still moving (no finer run)")
+    assert ce.goal(dict(moving, on_vrms_end=0.02))[1] == "creeps on the obstacle"
+    swing = [{"factor": 4, "dt": 1 / 240, "vrms_end": 0.04, "rest_from": None},
+             {"factor": 16, "dt": 1 / 960, "vrms_end": 0.1, "rest_from": None}]
+    met, why = ce.goal(dict(moving, finer_runs=swing))
+    assert met and "0.1" not in why and "10.00 cm/s at dt 1/960" in why
+    rests = [swing[0], dict(swing[1], vrms_end=0.002, rest_from=2.0)]
+    assert ce.goal(dict(moving, finer_runs=rests)) == (False, "the large step keeps it moving (at rest at dt 1/960)")
+    # the finest run decides, whatever the order stored
+    assert ce.goal(dict(moving, finer_runs=rests[::-1]))[0] is False
+    legacy = dict(moving, finer_dt=1 / 240, finer_vrms_end=0.03, finer_rest_from=None)
+    assert ce.goal(legacy)[0] and ce.finer_runs(legacy)[0]["factor"] == 4

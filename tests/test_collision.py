@@ -423,7 +423,9 @@ def test_resting_drape_on_a_sphere_settles_without_jitter():
 
 @pytest.mark.parametrize("tan", [0.3, 0.45, 0.55, 0.8])
 def test_friction_on_a_tilted_plane_holds_below_and_slides_above_the_friction_angle(tan):
-    """Cloth resting on a plane under gravity tilted by theta, Coulomb coefficient mu = 0.5.
+    """Cloth resting on a plane under gravity tilted by theta, Coulomb coefficient mu = 0.5, with Coulomb's
+    sticking and sliding states (``friction_speed = 0``; the default smoothed friction creeps below the angle,
+    tests/test_smoothed_friction.py).
 
     Static when tan(theta) < mu; above, backward Euler slides it by the discrete
     constant-acceleration distance a h^2 n (n + 1) / 2, a = g (sin theta - mu cos theta).
@@ -431,7 +433,8 @@ def test_friction_on_a_tilted_plane_holds_below_and_slides_above_the_friction_an
     mu, T, h, g = 0.5, 0.5, 1 / 60, 9.81
     th = np.arctan(tan)
     sc = cloth_scene({"shape": "plane", "point": [0, 0, 0], "normal": [0, 0, 1]}, dt=h, duration=T, res=8,
-                     size=0.3, center=(0, 0, TH), friction=mu, gravity=(g * np.sin(th), 0.0, -g * np.cos(th)))
+                     size=0.3, center=(0, 0, TH), friction=mu, gravity=(g * np.sin(th), 0.0, -g * np.cos(th)),
+                     collision={"friction_speed": 0.0})
     sc["effects"].pop("drag")
     sim = ic.Simulator(sc)
     x0 = sim.positions.copy()

@@ -83,17 +83,34 @@ def test_friction_newton_key_errors_name_the_key(value, message):
 
 def test_friction_newton_needs_a_friction_speed():
     d = {"cloth": {"mass": 0.1}, "obstacles": [{"shape": "sphere", "radius": 1}],
-         "collision": {"friction_newton": 6}}
-    with pytest.raises(ic.SceneError, match="collision.friction_newton: 6 .* collision.friction_speed"):
+         "collision": {"friction_newton": 6, "friction_speed": 0}}
+    with pytest.raises(ic.SceneError, match="collision.friction_newton: 6 .* collision.friction_speed is 0"):
         ic.Scene.from_dict(d)
+    d["collision"] = {"friction_newton": 6}          # the default sliding speed is smoothed friction's
+    ic.Scene.from_dict(d)
 
 
-def test_friction_newton_zero_is_the_smoothed_friction_of_before():
+def test_the_default_friction_is_smoothed_and_solved_within_the_step():
+    """A scene that says nothing of friction's model runs as ``friction_speed = 1e-4`` with ``friction_newton
+    = 6`` (bit for bit); its normalised table does not name them (scenes of before are unchanged), and giving
+    ``friction_speed = 0`` (Coulomb's states) or ``friction_newton = 0`` (the smoothed friction linearised once,
+    with its state rules) changes the trajectory."""
+    from implicit_cloth.collision.context import FRICTION_NEWTON, FRICTION_SPEED
+
+    assert (FRICTION_SPEED, FRICTION_NEWTON) == (1e-4, 6)
     base = drop_scene("sphere", n=10, duration=0.4)
-    base["collision"]["friction_speed"] = EPS
-    zero = drop_scene("sphere", n=10, duration=0.4)
-    zero["collision"].update(friction_speed=EPS, friction_newton=0)
-    assert ic.Scene.from_dict(zero).data == ic.Scene.from_dict(base).data
+    assert "friction_speed" not in ic.Scene.from_dict(base).data["collision"]
+    runs = {}
+    for name, extra in {"default": {}, "given": {"friction_speed": 1e-4, "friction_newton": 6},
+                        "coulomb": {"friction_speed": 0}, "linearised": {"friction_newton": 0}}.items():
+        sc = drop_scene("sphere", n=10, duration=0.4)
+        sc["collision"].update(extra)
+        sim = ic.Simulator(sc)
+        sim.run()
+        runs[name] = sim.positions
+    assert np.array_equal(runs["default"], runs["given"])
+    assert not np.array_equal(runs["default"], runs["coulomb"])
+    assert not np.array_equal(runs["default"], runs["linearised"])
 
 
 def test_on_the_cone_tip_the_friction_solve_keeps_large_steps_and_rests():

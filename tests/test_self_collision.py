@@ -240,13 +240,19 @@ def _towel(self_collision):
                          "pins": [{"vertices": list(range(n * (n - 1), n * n)), "velocity": [0.0, -0.5, 0.05]}]},
                "effects": {"gravity": [0.0, 0.0, -G]},
                "obstacles": [{"shape": "plane", "friction": 0.8}],
-               "collision": {"thickness": TH, "self_collision": self_collision}}
+               "collision": {"thickness": TH, "self_collision": self_collision, "friction_speed": 0.0}}
 
 
 @pytest.mark.slow
 def test_a_towel_folded_onto_itself_by_moving_pins():
     """A towel on the floor, one edge pinned and carried over it (0.5 m/s across, rising 5 cm/s): it folds
-    onto itself. Without self-collision the fold passes through the towel."""
+    onto itself. Without self-collision the fold passes through the towel.
+
+    With Coulomb's sticking and sliding states (``friction_speed = 0``): at dt 1/60 their sticking holds the
+    far part of the towel and the pushed part buckles and folds over it. With the default friction (smoothed,
+    solved within the step), as with Coulomb's states at dt 1/240, the flat towel, whose springs are as stiff
+    in compression as in tension, slides whole under the push instead (its far edge 0.24 m by 0.5 s): no fold
+    to test self-collision on."""
     n, scene = _towel(True)
     sim, traj, frames, cross = judged(scene)
     assert cross == [0] * len(frames)

@@ -50,6 +50,26 @@ def cloth_edges(faces: np.ndarray) -> np.ndarray:
 #: ``collision.newton_iterations`` of a settings table that reaches the collider without the key (built by hand:
 #: one linearisation); a validated scene always has it, by default 2 (``implicit_cloth.scene.COLLISION_DEFAULTS``).
 COLLISION_NEWTON = 1
+#: ``collision.friction_speed`` when a scene does not give it, m/s: friction smoothed below this sliding speed
+#: (0 would select Coulomb's sticking and sliding states, decided once a solve and lagged a step where they
+#: switch: at large steps those lags held a hanging cloth to a sphere driven through it, and the springs at
+#: its pins stretched with it: 22.6 times their length on a 32² cloth at 5 m/s and dt 1/30, 2.0 at dt 1/120
+#: and 1/480; see docs/scene.md).
+FRICTION_SPEED = 1e-4
+#: ``collision.friction_newton`` when a scene does not give it and its friction is smoothed: the smoothed
+#: friction solved within each step by up to this many Newton iterations.
+FRICTION_NEWTON = 6
+
+
+def friction_speed(settings: dict[str, Any]) -> float:
+    """The scene's smoothed-friction sliding speed, m/s (0: Coulomb's states); :data:`FRICTION_SPEED` if not given."""
+    return float(settings.get("friction_speed", FRICTION_SPEED))
+
+
+def friction_newton(settings: dict[str, Any]) -> int:
+    """The Newton iterations its smoothed friction is solved with in a step (0: linearised once, with the state
+    rules); :data:`FRICTION_NEWTON` if not given and the friction is smoothed, 0 with Coulomb's states."""
+    return int(settings.get("friction_newton", FRICTION_NEWTON if friction_speed(settings) > 0 else 0))
 
 
 @dataclass
@@ -103,8 +123,7 @@ class Context:
                    float(settings["restitution"]), int(settings["max_iterations"]), faces, cloth_edges(faces),
                    np.asarray(model.masses, dtype=float), inv_mass,
                    newton=int(settings.get("newton_iterations", COLLISION_NEWTON)),
-                   smooth=float(settings.get("friction_speed", 0.0)),
-                   friction_newton=int(settings.get("friction_newton", 0)))
+                   smooth=friction_speed(settings), friction_newton=friction_newton(settings))
 
     @property
     def n(self) -> int:
