@@ -125,13 +125,25 @@ def blender(exe: str, kind: str, n: int, a: argparse.Namespace) -> dict:
     return _result(subprocess.run(cmd, capture_output=True, text=True, timeout=a.timeout))
 
 
+def _friction_text(res: dict) -> str:
+    """The drape's friction, as the header says it (results of before 2026-12-05 without the key, or with 0:
+    Coulomb's states, then the default)."""
+    if "drape" not in {r["scene"] for r in res["rows"]}:
+        return ""
+    fs = res.get("friction_speed")
+    if fs is None and res.get("friction_default"):
+        return " Ours with the default friction (smoothed, solved within the step)."
+    if not fs:
+        return " Ours with Coulomb's sticking and sliding states (`collision.friction_speed = 0`)."
+    return f" Ours with smoothed friction, `collision.friction_speed = {fs:g}` m/s."
+
+
 def markdown(res: dict) -> str:
     mode = "fixed steps (one per frame)" if res["fixed"] else "default step control (adaptive)"
     out = [f"ms per 1/60 s frame, median of {res['pairs']} alternating pairs; ours: tolerance "
            f"{res['tolerance'] or 1e-3:g}, {mode}, {res['threads'] or 1} solver thread(s); Blender "
            f"{res['blender_version']}, one thread, CG capped at 100 iterations / 1e-2 residual."
-           + (f" Ours with smoothed friction, `collision.friction_speed = {res['friction_speed']:g}` m/s."
-              if res.get("friction_speed") else ""), "",
+           + _friction_text(res), "",
            "| scene | grid | ours (ms/frame) | Blender (ms/frame) | ratio ours / Blender | ours: CG its / frame | "
            "ours: solves / frame | ours: rms speed at the end (m/s) | Blender: rms speed (m/s) |",
            "|---|---|---|---|---|---|---|---|---|"]
@@ -185,7 +197,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{kind} {n}²: ours {row['ours_ms']:.1f} ms/frame, Blender {row['blender_ms']:.1f} ms/frame, "
                   f"ratio {row['ratio']:.2f}", flush=True)
     res = {"benchmark": "vs_blender", "pairs": a.pairs, "fixed": a.fixed, "tolerance": a.tolerance,
-           "threads": a.threads, "friction_speed": a.friction_speed, "blender_version": version, "rows": rows}
+           "threads": a.threads, "friction_speed": a.friction_speed, "friction_default": a.friction_speed is None,
+           "blender_version": version, "rows": rows}
     from _common import machine, write_outputs
 
     res["machine"] = machine()
