@@ -105,7 +105,12 @@ def judged(scene, base_dir=None):
 
 
 def crumple(n: int, dt: float, material: str, duration: float) -> dict:
-    """The issue's crumple: a hanging sheet dropped edge-first onto the floor and a low rod, piling onto itself."""
+    """The issue's crumple: a hanging sheet dropped edge-first onto the floor and a low rod, piling onto itself.
+
+    With Coulomb's sticking and sliding states (``friction_speed = 0``), the friction these runs' timings were
+    measured with: with the default friction (solved within the step) the 32² cotton's landed edge slides
+    instead of holding, and the sheet first touches itself after 0.85 s, not 0.57 s (at 1.5 s: 27 506
+    proximity impulses, 11 impacts, no crossing, status ok)."""
     return {"simulation": {"dt": dt, "duration": duration, "frame_rate": 30},
             "cloth": {"size": [1.0, 1.0], "resolution": [n, n], "plane": "xz", "center": [0.0, 0.0, 0.62],
                       "material": material},
@@ -113,7 +118,7 @@ def crumple(n: int, dt: float, material: str, duration: float) -> dict:
             "obstacles": [{"shape": "plane", "friction": 0.3},
                           {"shape": "capsule", "radius": 0.03, "height": 2.0, "axis": [0.0, 1.0, 0.0],
                            "center": [0.1, 0.0, 0.04], "friction": 0.3}],
-            "collision": {"thickness": TH, "self_collision": True}}
+            "collision": {"thickness": TH, "self_collision": True, "friction_speed": 0.0}}
 
 
 def _balanced(traj):
