@@ -96,3 +96,26 @@ FIXED_STEPS = {"enabled": False}
 #: Marker and colour of each integrator in every benchmark plot.
 STYLE = {"forward_euler": ("v", "tab:red"), "symplectic_euler": ("o", "tab:blue"), "verlet": ("s", "tab:cyan"),
          "rk4": ("D", "tab:purple"), "backward_euler": ("^", "tab:green"), "bdf2": ("P", "tab:olive")}
+
+
+def friction_used(speed: float | None, newton: int | None) -> tuple[float, int]:
+    """``(friction_speed, friction_newton)`` a run used: the values given (None: not given), the library's
+    defaults filled in."""
+    from implicit_cloth.collision.context import friction_newton, friction_speed
+
+    given = {k: v for k, v in (("friction_speed", speed), ("friction_newton", newton)) if v is not None}
+    return friction_speed(given), friction_newton(given)
+
+
+def friction_text(res: dict, who: str = "") -> str:
+    """How a result's friction reads in its table's header (results of before 2026-12-05 record 0, or nothing,
+    for Coulomb's states, then the default); ``who`` prefixes it ("Ours with ")."""
+    if not res.get("friction_speed"):
+        text = "Coulomb's sticking and sliding states (`collision.friction_speed = 0`)"
+    else:
+        text = f"smoothed friction, `collision.friction_speed = {res['friction_speed']:g}` m/s"
+        if res.get("friction_newton"):
+            text += (f", solved within each step by up to `collision.friction_newton = {res['friction_newton']}` "
+                     "Newton iterations")
+    text = who + text
+    return f" {text[0].upper()}{text[1:]}."

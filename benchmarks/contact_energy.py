@@ -69,7 +69,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import ROOT, ic, machine, run_all, save_png, write_outputs
+from _common import ROOT, friction_text, friction_used, ic, machine, run_all, save_png, write_outputs
 
 G = 9.81
 MASS = 0.1
@@ -315,25 +315,6 @@ def friction_settings(args: argparse.Namespace) -> dict:
     return out
 
 
-def friction_used(args: argparse.Namespace) -> tuple[float, int]:
-    """``(friction_speed, friction_newton)`` the rows ran with, the library's defaults filled in."""
-    from implicit_cloth.collision.context import friction_newton, friction_speed
-
-    given = friction_settings(args)
-    return friction_speed(given), friction_newton(given)
-
-
-def friction_text(res: dict) -> str:
-    """How a result's friction reads in its table's header (results of before 2026-12-05 record 0 for
-    Coulomb's states, then the default)."""
-    if not res.get("friction_speed"):
-        return " Coulomb's sticking and sliding states (`collision.friction_speed = 0`)."
-    out = f" Smoothed friction, `collision.friction_speed = {res['friction_speed']:g}` m/s"
-    if res.get("friction_newton"):
-        out += f", solved within each step by up to `collision.friction_newton = {res['friction_newton']}` Newton iterations"
-    return out + "."
-
-
 def specs(args: argparse.Namespace, mesh_dir: Path) -> list[dict]:
     base = {"mesh_dir": str(mesh_dir), "material": None, "speed": None, "finer": [k for k in args.finer if k > 1]}
     out = _specs(args, base)
@@ -546,7 +527,8 @@ def main(argv: list[str] | None = None) -> int:
         rows = run_all(run_row, specs(args, mesh_files(Path(tmp))), args.workers, "contact")
     res = {"benchmark": "contact_energy", "quick": args.quick, "machine": machine(), "duration": args.duration,
            "moving_duration": args.moving_duration, **dict(zip(("friction_speed", "friction_newton"),
-                                                               friction_used(args), strict=True)),
+                                                               friction_used(args.friction_speed, args.friction_newton),
+                                                               strict=True)),
            "contact_tolerance": args.contact_tolerance, "wall_s": time.perf_counter() - t0, "rows": rows,
            "goals": {"rise_frac": RISE_GOAL, "stretch": STRETCH_GOAL}}
     args.out.mkdir(parents=True, exist_ok=True)

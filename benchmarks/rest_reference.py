@@ -44,7 +44,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import ROOT, ic, machine, run_all, save_png, write_outputs
+from _common import ROOT, friction_text, friction_used, ic, machine, run_all, save_png, write_outputs
 from contact_energy import (
     ON_DISTANCE,
     REST_SPEED,
@@ -52,8 +52,6 @@ from contact_energy import (
     G,
     Judge,
     friction_settings,
-    friction_text,
-    friction_used,
     mesh_files,
     obstacle_distance,
     rms_speed,
@@ -226,7 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     order = {row: i for i, row in enumerate(args.rows)}
     runs.sort(key=lambda r: (order[r["row"]], r["integrator"] != "backward_euler", r["factor"] or 0))
     res = {"benchmark": "rest_reference", "quick": args.quick, "machine": machine(), "duration": args.duration,
-           **dict(zip(("friction_speed", "friction_newton"), friction_used(args), strict=True)),
+           **dict(zip(("friction_speed", "friction_newton"),
+                      friction_used(args.friction_speed, args.friction_newton), strict=True)),
            "wall_s": time.perf_counter() - t0, "runs": runs}
     args.out.mkdir(parents=True, exist_ok=True)
     write_outputs(args.out, "rest_reference", res, markdown(res))

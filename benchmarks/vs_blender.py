@@ -126,16 +126,12 @@ def blender(exe: str, kind: str, n: int, a: argparse.Namespace) -> dict:
 
 
 def _friction_text(res: dict) -> str:
-    """The drape's friction, as the header says it (results of before 2026-12-05 without the key, or with 0:
-    Coulomb's states, then the default)."""
+    """The drape's friction in the header (none without drape rows)."""
     if "drape" not in {r["scene"] for r in res["rows"]}:
         return ""
-    fs = res.get("friction_speed")
-    if fs is None and res.get("friction_default"):
-        return " Ours with the default friction (smoothed, solved within the step)."
-    if not fs:
-        return " Ours with Coulomb's sticking and sliding states (`collision.friction_speed = 0`)."
-    return f" Ours with smoothed friction, `collision.friction_speed = {fs:g}` m/s."
+    from _common import friction_text
+
+    return friction_text(res, "Ours with ")
 
 
 def markdown(res: dict) -> str:
@@ -197,9 +193,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{kind} {n}²: ours {row['ours_ms']:.1f} ms/frame, Blender {row['blender_ms']:.1f} ms/frame, "
                   f"ratio {row['ratio']:.2f}", flush=True)
     res = {"benchmark": "vs_blender", "pairs": a.pairs, "fixed": a.fixed, "tolerance": a.tolerance,
-           "threads": a.threads, "friction_speed": a.friction_speed, "friction_default": a.friction_speed is None,
-           "blender_version": version, "rows": rows}
-    from _common import machine, write_outputs
+           "threads": a.threads, "blender_version": version, "rows": rows}
+    from _common import friction_used, machine, write_outputs
+
+    res["friction_speed"], res["friction_newton"] = friction_used(a.friction_speed, None)
 
     res["machine"] = machine()
     md = markdown(res)

@@ -370,7 +370,7 @@ def _collision(d: Any) -> dict[str, Any]:
         out["friction_speed"] = number("collision.friction_speed", d["friction_speed"], lo=0.0)
     if "friction_newton" in d:
         iters = integer("collision.friction_newton", d["friction_newton"], lo=0, hi=100)
-        if iters > 0 and out.get("friction_speed", 1.0) == 0:
+        if iters > 0 and out.get("friction_speed") == 0:
             raise SceneError(f"collision.friction_newton: {iters} Newton iterations of smoothed friction, but "
                              "collision.friction_speed is 0 (Coulomb's sticking and sliding states, which have "
                              "no smoothed friction to solve); give a sliding speed > 0 or leave friction_newton out")
