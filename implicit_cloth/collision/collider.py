@@ -26,6 +26,11 @@ BALANCE = 9.81
 #: New contacts violated by at most this fraction of the thickness do not call for another solve: they are
 #: held from the next step on, and the geometric response keeps them out in this one.
 RESOLVE_FRACTION = 0.1
+#: Smoothed friction solved within the step (``collision.friction_newton``): after a step whose Newton iterations
+#: missed the friction's law (the step then keeps its first solve, with the state rules), the next
+#: ``FRICTION_RETRY - 1`` steps go to the state rules at once, without the iterations (then they are tried
+#: again). A skipped continuation gives what a missed one gives: the first solve.
+FRICTION_RETRY = 4
 
 
 class Collider:
@@ -55,6 +60,8 @@ class Collider:
         self._carry: list[tuple[Any, contacts.Planes]] = []
         #: the last attempt at a step: (state, h, its contacts, its end velocities), for a nonlinear redo
         self._attempt: tuple[Any, float, contacts.Planes, np.ndarray] | None = None
+        #: steps still to go without the friction's Newton iterations (:data:`FRICTION_RETRY`)
+        self._friction_pause = 0
 
     # the settings, as the report reads them
     @property
@@ -104,6 +111,7 @@ class Collider:
         """Forget the contacts carried from step to step (called when the state is assigned)."""
         self._carry = []
         self._attempt = None
+        self._friction_pause = 0
 
     # ------------------------------------------------------------------ explicit methods
     def respond(self, before: Any, after: Any, h: float) -> CollisionInfo:
@@ -179,6 +187,9 @@ class Collider:
         redo_newton = newton - 1 if extra and newton is not None and newton > 1 else None
         round_newton = None if redo_newton is not None else newton
         friction_newton = self.ctx.friction_newton if redo_newton is None else 0   # solves converge friction
+        if friction_newton and self._friction_pause > 0:      # missed the law lately: the state rules at once
+            self._friction_pause -= 1
+            friction_newton = 0
         for rnd in range(self.ctx.max_rounds):
             if extra and len(active):                           # a prescribed vertex is no contact
                 active = active.take(~np.isin(active.idx, pins.pinned))
@@ -191,6 +202,10 @@ class Collider:
             total.absorb(si)
             total.constraint_impulse = si.constraint_impulse
             total.friction_converged = si.friction_converged
+            if friction_newton and cons.n_contacts and si.friction_converged is False:
+                # the Newton iterations ran and missed the law: pause them from the next step on (this step's
+                # later rounds still try: skipping those too left a 32² drape at dt 1/30 sliding at mm/s)
+                self._friction_pause = FRICTION_RETRY - 1
             balance = si.balance
             info.rounds = rnd + 1
             if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
