@@ -128,3 +128,44 @@ def test_on_the_cone_tip_the_friction_solve_keeps_large_steps_and_rests():
     assert traj.report["adaptive"]["substeps_per_step"] <= 1.2
     assert sim.positions[:, 2].max() == pytest.approx(0.4 + TH, abs=5e-3)
     assert traj.report["status"] == "ok", traj.report["reason"]
+
+
+def test_after_a_missed_friction_solve_the_next_steps_skip_the_newton_iterations():
+    """While a drape folds, the friction's Newton iterations miss the law in runs of steps; after a step whose
+    iterations missed it, the next FRICTION_RETRY - 1 steps go to the state rules at once (one linear solve a
+    round, no iterations), and the step after tries them again."""
+    from implicit_cloth.collision import collider as col
+    from implicit_cloth.integrators import base
+
+    sim = ic.Simulator(ic.Scene.from_dict(drop_scene("sphere", n=24, dt=1 / 60, duration=1.0)))
+    steps: list[list[tuple[bool, bool | None]]] = []     # per collider step: (iterations asked, missed) a round
+    real_step = base.ImplicitIntegrator.step
+    real_rounds = col.Collider._solve_rounds
+
+    def rounds(self, *args, **kw):
+        steps.append([])
+        return real_rounds(self, *args, **kw)
+
+    def step(self, state, h, constraints=None, guess=None, newton=None, start=None):
+        new, info = real_step(self, state, h, constraints, guess, newton, start)
+        if start is None and constraints is not None and constraints.n_contacts:
+            asked = newton is not None and newton > 1
+            steps[-1].append((asked, asked and info.friction_converged is False))
+        return new, info
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(col.Collider, "_solve_rounds", rounds)
+    mp.setattr(base.ImplicitIntegrator, "step", step)
+    try:
+        sim.step(60)
+    finally:
+        mp.undo()
+    steps = [s for s in steps if s]                           # steps with contacts
+    missed = [k for k, s in enumerate(steps) if any(m for _, m in s)]
+    assert len(missed) >= 3                                   # the drape's fold makes such runs
+    retry = col.FRICTION_RETRY
+    for k in missed:
+        after = steps[k + 1:k + retry]
+        assert all(not asked for s in after for asked, _ in s), k
+        if k + retry < len(steps) and not any(m for s in after for _, m in s):
+            assert steps[k + retry][0][0], k                  # tried again
