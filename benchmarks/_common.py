@@ -117,5 +117,8 @@ def friction_text(res: dict, who: str = "") -> str:
         if res.get("friction_newton"):
             text += (f", solved within each step by up to `collision.friction_newton = {res['friction_newton']}` "
                      "Newton iterations")
+        if res.get("friction_pause"):
+            text += (f", paused for `collision.friction_pause = {res['friction_pause']}` steps after two steps in a "
+                     "row that missed the law")
     text = who + text
     return f" {text[0].upper()}{text[1:]}."

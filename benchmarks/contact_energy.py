@@ -312,6 +312,8 @@ def friction_settings(args: argparse.Namespace) -> dict:
         out["friction_speed"] = args.friction_speed
     if args.friction_newton is not None:
         out["friction_newton"] = args.friction_newton
+    if getattr(args, "friction_pause", 0):
+        out["friction_pause"] = args.friction_pause
     return out
 
 
@@ -509,6 +511,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--friction-newton", type=int, default=None, metavar="K",
                    help="collision.friction_newton of every row (with --friction-speed: the smoothed friction "
                         "solved within the step by up to K Newton iterations; 0: linearised once)")
+    p.add_argument("--friction-pause", type=int, default=0, metavar="P",
+                   help="collision.friction_pause of every row (steps without the friction's Newton iterations "
+                        "after two steps in a row that missed the law; 0: the default, never)")
     p.add_argument("--contact-tolerance", type=float, default=0.0, metavar="TOL",
                    help="solver.contact_tolerance of every row (0: the default, solver.tolerance)")
     p.add_argument("--workers", type=int, default=1)
@@ -529,7 +534,7 @@ def main(argv: list[str] | None = None) -> int:
            "moving_duration": args.moving_duration, **dict(zip(("friction_speed", "friction_newton"),
                                                                friction_used(args.friction_speed, args.friction_newton),
                                                                strict=True)),
-           "contact_tolerance": args.contact_tolerance, "wall_s": time.perf_counter() - t0, "rows": rows,
+           "friction_pause": args.friction_pause, "contact_tolerance": args.contact_tolerance, "wall_s": time.perf_counter() - t0, "rows": rows,
            "goals": {"rise_frac": RISE_GOAL, "stretch": STRETCH_GOAL}}
     args.out.mkdir(parents=True, exist_ok=True)
     write_outputs(args.out, "contact_energy", res, markdown(res))

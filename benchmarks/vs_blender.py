@@ -40,7 +40,8 @@ FPS = 60
 SIZES = {"hanging": [32, 64, 128, 256], "drape": [32, 64, 128]}
 
 
-def scene(kind: str, n: int, fixed: bool = False, friction_speed: float | None = None) -> dict:
+def scene(kind: str, n: int, fixed: bool = False, friction_speed: float | None = None,
+          friction_pause: int = 0) -> dict:
     """The benchmark scene as an implicit_cloth scene table (see the module docstring)."""
     springs = {"structural": {"stiffness": 1000.0, "damping": 0.01},
                "shear": {"stiffness": 1000.0 / 3.0, "damping": 0.01},
@@ -55,13 +56,15 @@ def scene(kind: str, n: int, fixed: bool = False, friction_speed: float | None =
         d["collision"] = {"thickness": 0.005}
         if friction_speed is not None:
             d["collision"]["friction_speed"] = friction_speed
+        if friction_pause:
+            d["collision"]["friction_pause"] = friction_pause
     if fixed:
         d["simulation"]["adaptive"] = {"enabled": False}
     return d
 
 
 def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: int | None,
-             friction_speed: float | None = None) -> dict:
+             friction_speed: float | None = None, friction_pause: int = 0) -> dict:
     """One run of ours in this process (the worker): the RESULT record."""
     import numpy as np
 
@@ -72,7 +75,8 @@ def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: i
     if threads is not None:
         backend.set_threads(threads)
     solver = {"tolerance": tolerance} if tolerance else None
-    sim = ic.Simulator(ic.Scene.from_dict(scene(kind, n, fixed, friction_speed)), solver=solver)
+    sim = ic.Simulator(ic.Scene.from_dict(scene(kind, n, fixed, friction_speed, friction_pause)),
+                       solver=solver)
     frames = 120
     sim.step(1)                                   # the first frame: kernels loaded from numba's cache
     its = solves = 0
@@ -91,7 +95,8 @@ def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: i
     x = sim.positions
     timed = frames - 1
     return {"peer": f"implicit_cloth-{ic.__version__}", "scene": kind, "n": n, "frames": timed,
-            "fixed_steps": fixed, "friction_speed": friction_speed, "tolerance": sim.integrator.tolerance, "threads": backend.threads(),
+            "fixed_steps": fixed, "friction_speed": friction_speed,
+            "friction_pause": friction_pause, "tolerance": sim.integrator.tolerance, "threads": backend.threads(),
             "accelerator": getattr(sim.integrator.precond, "accelerator", "numpy"),
             "wall_s": wall, "ms_per_frame": 1e3 * wall / timed, "iterations_per_frame": its / timed,
             "solves_per_frame": solves / timed, "zmin": float(x[:, 2].min()),
@@ -116,6 +121,8 @@ def ours(kind: str, n: int, a: argparse.Namespace) -> dict:
         cmd += ["--threads", str(a.threads)]
     if a.friction_speed is not None:
         cmd += ["--friction-speed", str(a.friction_speed)]
+    if a.friction_pause:
+        cmd += ["--friction-pause", str(a.friction_pause)]
     return _result(subprocess.run(cmd, capture_output=True, text=True, timeout=a.timeout))
 
 
@@ -161,13 +168,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timeout", type=float, default=3600.0, help="s per run")
     p.add_argument("--friction-speed", type=float, default=None, metavar="EPS",
                    help="ours, drape: collision.friction_speed, m/s (0: Coulomb's states; default: the library's)")
+    p.add_argument("--friction-pause", type=int, default=0, metavar="P",
+                   help="ours, drape: collision.friction_pause, steps (0: the default, none)")
     p.add_argument("--out", default=str(HERE / "results"))
     p.add_argument("--name", default="vs_blender", help="output file stem (default vs_blender)")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
         print("RESULT " + json.dumps(run_ours(a.scenes[0], a.sizes[0], a.fixed, a.tolerance, a.threads,
-                                              a.friction_speed)))
+                                              a.friction_speed, a.friction_pause)))
         return 0
     exe = shutil.which("blender")
     if exe is None:
@@ -197,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     from _common import friction_used, machine, write_outputs
 
     res["friction_speed"], res["friction_newton"] = friction_used(a.friction_speed, None)
+    res["friction_pause"] = a.friction_pause
 
     res["machine"] = machine()
     md = markdown(res)

@@ -62,7 +62,7 @@ CLOTH_KEYS = (
     "mass", "density", "pins", "material", "springs", "velocity",
 )
 COLLISION_KEYS = ("thickness", "restitution", "max_iterations", "newton_iterations", "friction_speed",
-                  "friction_newton", "self_collision", "self_friction")
+                  "friction_newton", "friction_pause", "self_collision", "self_friction")
 #: Coulomb coefficient between layers of cloth when ``self_collision`` is on and ``self_friction`` is not given.
 SELF_FRICTION = 0.3
 COLLISION_DEFAULTS: dict[str, Any] = {"thickness": 0.005, "restitution": 0.0, "max_iterations": 8,
@@ -375,6 +375,13 @@ def _collision(d: Any) -> dict[str, Any]:
                              "collision.friction_speed is 0 (Coulomb's sticking and sliding states, which have "
                              "no smoothed friction to solve); give a sliding speed > 0 or leave friction_newton out")
         out["friction_newton"] = iters
+    if "friction_pause" in d:   # opt-in speed: in the normalised table only when given
+        pause = integer("collision.friction_pause", d["friction_pause"], lo=0, hi=1000)
+        if pause > 0 and (out.get("friction_newton") == 0 or out.get("friction_speed") == 0):
+            raise SceneError(f"collision.friction_pause: {pause} steps without the friction's Newton iterations, "
+                             "but the scene's friction is not solved within the step (friction_newton or "
+                             "friction_speed is 0): nothing to pause; leave friction_pause out")
+        out["friction_pause"] = pause
     # self-collision's keys appear in the normalised table only when it is on (a scene without it is unchanged)
     if boolean("collision.self_collision", d.get("self_collision", False)):
         out["self_collision"] = True

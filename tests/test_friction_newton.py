@@ -130,15 +130,17 @@ def test_on_the_cone_tip_the_friction_solve_keeps_large_steps_and_rests():
     assert traj.report["status"] == "ok", traj.report["reason"]
 
 
-def test_after_two_missed_friction_solves_in_a_row_the_next_steps_skip_the_newton_iterations():
-    """While a drape folds, the friction's Newton iterations miss the law in runs of steps; after two steps in a
-    row whose iterations missed it, the next FRICTION_RETRY - 1 steps go to the state rules at once (one linear
-    solve a round, no iterations), the step after tries them again, and a single miss pauses nothing."""
+def _asked_and_missed(pause: int | None) -> list[list[tuple[bool, bool]]]:
+    """Per collider step with contacts of a 24² drape folding over the sphere (dt 1/60, 1 s), per round:
+    whether the friction's Newton iterations were asked for, and whether they missed the law."""
     from implicit_cloth.collision import collider as col
     from implicit_cloth.integrators import base
 
-    sim = ic.Simulator(ic.Scene.from_dict(drop_scene("sphere", n=24, dt=1 / 60, duration=1.0)))
-    steps: list[list[tuple[bool, bool]]] = []            # per collider step: (iterations asked, missed) a round
+    scene = drop_scene("sphere", n=24, dt=1 / 60, duration=1.0)
+    if pause is not None:
+        scene["collision"]["friction_pause"] = pause
+    sim = ic.Simulator(ic.Scene.from_dict(scene))
+    steps: list[list[tuple[bool, bool]]] = []
     real_step = base.ImplicitIntegrator.step
     real_rounds = col.Collider._solve_rounds
 
@@ -160,8 +162,16 @@ def test_after_two_missed_friction_solves_in_a_row_the_next_steps_skip_the_newto
         sim.step(60)
     finally:
         mp.undo()
-    steps = [s for s in steps if s]                           # steps with contacts
-    retry = col.FRICTION_RETRY
+    return [s for s in steps if s]
+
+
+def test_friction_pause_skips_the_newton_iterations_after_two_missed_steps_in_a_row():
+    """``collision.friction_pause = P``: while a drape folds, the friction's Newton iterations miss the law in
+    runs of steps; after two steps in a row whose iterations missed it, the next P steps go to the state rules
+    at once (one linear solve a round, no iterations), the step after tries them again, and a single miss
+    pauses nothing. Without the key every contact step asks for them."""
+    pause = 3
+    steps = _asked_and_missed(pause)
     pauses = singles = 0
     prev_missed = False                                       # the last step that asked
     k = 0
@@ -171,11 +181,26 @@ def test_after_two_missed_friction_solves_in_a_row_the_next_steps_skip_the_newto
         assert asked, k                                       # no pause running here: every step asks
         if missed and prev_missed:
             pauses += 1
-            after = steps[k + 1:k + retry]
+            after = steps[k + 1:k + 1 + pause]
             assert all(not a for s in after for a, _ in s), k
-            k += retry
+            k += 1 + pause
         else:
             singles += missed and not prev_missed
             k += 1
         prev_missed = missed
     assert pauses >= 2 and singles >= 1                       # the fold makes runs of misses
+    default = _asked_and_missed(None)
+    assert all(s[0][0] for s in default)
+    assert sum(any(m for _, m in s) for s in default) > pauses
+
+
+@pytest.mark.parametrize("collision, message", [
+    ({"friction_pause": -1}, "collision.friction_pause: must be an integer"),
+    ({"friction_pause": 1.5}, "collision.friction_pause: must be an integer"),
+    ({"friction_pause": 3, "friction_speed": 0}, "collision.friction_pause: 3 steps .* nothing to pause"),
+    ({"friction_pause": 3, "friction_newton": 0}, "collision.friction_pause: 3 steps .* nothing to pause"),
+])
+def test_friction_pause_key_errors_name_the_key(collision, message):
+    d = {"cloth": {"mass": 0.1}, "obstacles": [{"shape": "sphere", "radius": 1}], "collision": collision}
+    with pytest.raises(ic.SceneError, match=message):
+        ic.Scene.from_dict(d)

@@ -26,14 +26,6 @@ BALANCE = 9.81
 #: New contacts violated by at most this fraction of the thickness do not call for another solve: they are
 #: held from the next step on, and the geometric response keeps them out in this one.
 RESOLVE_FRACTION = 0.1
-#: Smoothed friction solved within the step (``collision.friction_newton``): after two steps in a row whose Newton
-#: iterations missed the friction's law (each then keeps its first solve, with the state rules), the next
-#: ``FRICTION_RETRY - 1`` steps go to the state rules at once, without the iterations; then they are tried again
-#: (and paused again at once if they miss). A skipped continuation gives what a missed one gives: the first
-#: solve. Misses come in runs while a cloth folds (the shared 64² drape: 216 of 260 continuations, half the
-#: run's time); a single miss near rest pauses nothing (pausing after every miss left two of the contact
-#: table's drapes at dt 1/30 moving at 3 s that rest without it).
-FRICTION_RETRY = 4
 
 
 class Collider:
@@ -63,9 +55,9 @@ class Collider:
         self._carry: list[tuple[Any, contacts.Planes]] = []
         #: the last attempt at a step: (state, h, its contacts, its end velocities), for a nonlinear redo
         self._attempt: tuple[Any, float, contacts.Planes, np.ndarray] | None = None
-        #: steps still to go without the friction's Newton iterations (:data:`FRICTION_RETRY`)
+        #: steps still to go without the friction's Newton iterations (``collision.friction_pause``)
         self._friction_pause = 0
-        #: whether the last step that tried them missed the law (:data:`FRICTION_RETRY`)
+        #: whether the last step that tried them missed the law (``collision.friction_pause``)
         self._friction_missed = False
 
     # the settings, as the report reads them
@@ -214,7 +206,7 @@ class Collider:
                 if missed and self._friction_missed:
                     # the Newton iterations missed the law again: pause them from the next step on (this step's
                     # later rounds still try: skipping those too left a 32² drape at dt 1/30 sliding at mm/s)
-                    self._friction_pause = FRICTION_RETRY - 1
+                    self._friction_pause = self.ctx.friction_pause
                 step_missed = missed if rnd == 0 else (step_missed or missed)
             balance = si.balance
             info.rounds = rnd + 1

@@ -113,6 +113,9 @@ class Context:
     #: the most Newton iterations of a contact step's solves when smoothed friction is solved to convergence
     #: (``collision.friction_newton``; 0: linearised once, with its state rules)
     friction_newton: int = 0
+    #: steps the friction's Newton iterations are skipped after two steps in a row that missed the law
+    #: (``collision.friction_pause``; 0: never)
+    friction_pause: int = 0
 
     @classmethod
     def build(cls, obstacles: list[dict[str, Any]], settings: dict[str, Any], model: Any) -> "Context":
@@ -123,7 +126,8 @@ class Context:
                    float(settings["restitution"]), int(settings["max_iterations"]), faces, cloth_edges(faces),
                    np.asarray(model.masses, dtype=float), inv_mass,
                    newton=int(settings.get("newton_iterations", COLLISION_NEWTON)),
-                   smooth=friction_speed(settings), friction_newton=friction_newton(settings))
+                   smooth=friction_speed(settings), friction_newton=friction_newton(settings),
+                   friction_pause=int(settings.get("friction_pause", 0)))
 
     @property
     def n(self) -> int:
