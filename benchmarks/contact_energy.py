@@ -534,7 +534,8 @@ def main(argv: list[str] | None = None) -> int:
            "moving_duration": args.moving_duration, **dict(zip(("friction_speed", "friction_newton"),
                                                                friction_used(args.friction_speed, args.friction_newton),
                                                                strict=True)),
-           "friction_pause": args.friction_pause, "contact_tolerance": args.contact_tolerance, "wall_s": time.perf_counter() - t0, "rows": rows,
+           "friction_pause": args.friction_pause, "contact_tolerance": args.contact_tolerance,
+           "wall_s": time.perf_counter() - t0, "rows": rows,
            "goals": {"rise_frac": RISE_GOAL, "stretch": STRETCH_GOAL}}
     args.out.mkdir(parents=True, exist_ok=True)
     write_outputs(args.out, "contact_energy", res, markdown(res))

@@ -188,7 +188,7 @@ class Collider:
         if friction_newton and self._friction_pause > 0:      # missed the law lately: the state rules at once
             self._friction_pause -= 1
             friction_newton = 0
-        step_missed = None
+        step_missed: bool | None = None      # whether a round of this step missed the law (None: none tried)
         for rnd in range(self.ctx.max_rounds):
             if extra and len(active):                           # a prescribed vertex is no contact
                 active = active.take(~np.isin(active.idx, pins.pinned))
@@ -201,13 +201,13 @@ class Collider:
             total.absorb(si)
             total.constraint_impulse = si.constraint_impulse
             total.friction_converged = si.friction_converged
-            if friction_newton and cons.n_contacts and si.friction_converged is not None:
+            if self.ctx.friction_pause and friction_newton and cons.n_contacts and si.friction_converged is not None:
                 missed = si.friction_converged is False
                 if missed and self._friction_missed:
                     # the Newton iterations missed the law again: pause them from the next step on (this step's
                     # later rounds still try: skipping those too left a 32² drape at dt 1/30 sliding at mm/s)
                     self._friction_pause = self.ctx.friction_pause
-                step_missed = missed if rnd == 0 else (step_missed or missed)
+                step_missed = step_missed or missed
             balance = si.balance
             info.rounds = rnd + 1
             if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
