@@ -289,6 +289,8 @@ def test_numba_float32_vcycle_matches_direct_solve(monkeypatch, tol):
     mg = make_preconditioner("multigrid", m, "numba")
     mg.setup(None, filt)
     assert mg.engine.uv.dtype == np.float32 and mg.engine.auv.dtype == np.float64
+    # the fine spring blocks' six-number copy too: CG's in float64, the V-cycle's in float32
+    assert mg.engine.use6 and mg.engine.au6.dtype == np.float64 and mg.engine.vu6.dtype == np.float32
     dv, res = filtered_pcg(m.system.csr, b, z, filt, mg, tol=tol, mass=np.repeat(m.masses, 3))
     ref = _direct(A, b, z, filt)
     assert res.converged and np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= tol
@@ -404,14 +406,17 @@ def test_numba_fine_blocks_need_not_be_symmetric_themselves():
 
 
 @pytest.mark.skipif(not numba_available(), reason="numba not installed")
-def test_threads_give_the_same_numbers_and_match_a_direct_solve(monkeypatch):
+@pytest.mark.parametrize("vcycle", ["float64", "float32"])
+def test_threads_give_the_same_numbers_and_match_a_direct_solve(monkeypatch, vcycle):
     """The threaded passes (every level threaded here) give the serial numbers to the last bit, for 1 and 2
     threads, with pins and contact-like filters (sliding along a tilted normal, sticking); dv within the
-    tolerance of a direct solve, constrained components exact. Whole steps agree as well."""
+    tolerance of a direct solve, constrained components exact. Whole steps agree as well. Both with the
+    float64 V-cycle and with the float32 one of large cloths."""
     from implicit_cloth import backend
     from implicit_cloth.solvers import multigrid
 
     monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES", 0)
+    monkeypatch.setattr(multigrid, "FLOAT32_MIN_VERTICES", 0 if vcycle == "float32" else None)
     sim = ic.Simulator(_scene(res=(30, 27)), dt=H)
     m, A, b = _system(sim, steps=4)
     z = np.random.default_rng(4).standard_normal(b.shape) * 0.01
@@ -428,7 +433,7 @@ def test_threads_give_the_same_numbers_and_match_a_direct_solve(monkeypatch):
             backend.set_threads(th)
             mg = make_preconditioner("multigrid", m, "numba")
             mg.setup(None, filt)
-            assert mg.engine.lpar.all()
+            assert mg.engine.lpar.all() and mg.engine.vu6.dtype == np.dtype(vcycle)
             r = filt.apply(np.random.default_rng(2).standard_normal(b.shape))
             v = mg.apply(r)
             dv, res = filtered_pcg(m.system.csr, b, z, filt, mg, tol=1e-4, mass=np.repeat(m.masses, 3))

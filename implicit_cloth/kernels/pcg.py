@@ -529,17 +529,17 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
 
 
 @njit(cache=True, fastmath={"contract"})
-def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, dinv,
+def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, Sc, dinv,
         pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
         b, z, guess, use_guess, mass, use_mass, tol, max_iterations, bound_only, min_delay, delay_fraction):
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
 
     ``adg``, ``auI``, ``auJ``, ``auv``: the fine matrix (unfiltered, float64, symmetric storage of
     :func:`_symmv`) that CG multiplies by (its upper blocks from ``au6`` with ``use6``); the V-cycle's packed
-    hierarchy (:func:`vcycle`) may hold its
-    own (float32) copy of it as level 0. ``lpar``, ...: the threads' chunks (:func:`vcycle`); CG's products
-    and its updates without a sum run on threads when the finest level's do, its dot products serially, so
-    the iterates are the same whatever the number of threads.
+    hierarchy (:func:`vcycle`) may hold its own (float32) copy of it as level 0, its six-number upper blocks
+    then ``vu6`` (else ``vu6`` is ``au6``). ``lpar``, ...: the threads' chunks (:func:`vcycle`); CG's
+    products and its updates without a sum run on threads when the finest level's do, its dot products
+    serially, so the iterates are the same whatever the number of threads.
 
     Returns ``(dv, iterations, residual, converged, error)``.
     """
@@ -572,7 +572,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
     if norm0 == 0.0:
         return dv, 0, 0.0, True, 0.0
     s = np.empty(N)
-    vcycle(r, s, dg, uI, uJ, uv, au6, use6, voff, uoff, clist, Sc, ws, dinv,
+    vcycle(r, s, dg, uI, uJ, uv, vu6, use6, voff, uoff, clist, Sc, ws, dinv,
            pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
            wb, wx, wr)
     filter_vec(clist, Sc, s)
@@ -596,7 +596,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, voff, uoff, clist, Sc, di
         ad[it] = alpha * delta
         pw[it] = pp / pq
         it += 1
-        vcycle(r, s, dg, uI, uJ, uv, au6, use6, voff, uoff, clist, Sc, ws, dinv,
+        vcycle(r, s, dg, uI, uJ, uv, vu6, use6, voff, uoff, clist, Sc, ws, dinv,
                pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
            wb, wx, wr)
         filter_vec(clist, Sc, s)

@@ -507,11 +507,15 @@ def _csr_from_blocks(sm: SystemMatrix, blocks: np.ndarray) -> sp.csr_array:
     return A
 
 
-#: From this many fine vertices on, the compiled V-cycle keeps its matrices in float32 (vectors, sums, the
-#: Galerkin products, the coarse Cholesky and CG itself stay float64). With the symmetric half storage the
-#: matrix passes are no longer limited by memory traffic at these sizes and the conversions cost more than
-#: they save, so it is off by default (``None``); set a vertex count to enable it.
-FLOAT32_MIN_VERTICES: int | None = None
+#: From this many fine vertices on, the compiled V-cycle keeps its matrices in float32, the fine spring blocks'
+#: six-number copy included (vectors, sums, the Galerkin products, the coarse Cholesky and CG itself, with its
+#: own float64 copy of the fine matrix, stay float64; the solve's stopping rule and tolerance are CG's, so the
+#: accuracy of dv is unchanged). Where the hierarchy no longer fits the cache the passes are limited by memory
+#: traffic and half the bytes pay: on the shared hanging scene (2 shared cores, 32 MiB L3) a CG iteration
+#: took 7.5-7.8 instead of 8.8-9.0 ms at 192² and 13.6-13.9 instead of 16.0-16.6 ms at 256² (one thread;
+#: 9.8 instead of 10.1-11.3 on two), the same iterations; at 128² (everything in cache) the same time
+#: within the noise. ``None`` turns it off.
+FLOAT32_MIN_VERTICES: int | None = 32768
 
 
 #: Levels with at least this many vertices run their passes on threads when more than one is allowed
@@ -550,7 +554,8 @@ class PackedHierarchy(NamedTuple):
     uI: np.ndarray        #: row vertex of every stored upper block (i < j), all levels
     uJ: np.ndarray        #: its column vertex
     uv: np.ndarray        #: (sum u_l, 3, 3) the upper blocks
-    u6: np.ndarray        #: the fine upper blocks' six distinct numbers (used while all are symmetric)
+    u6: np.ndarray        #: the fine upper blocks' six distinct numbers (used while all are symmetric; float32
+                          #: with the float32 V-cycle)
     use6: bool            #: whether u6 is used
     voff: np.ndarray      #: level l's vertices are voff[l]:voff[l+1]
     uoff: np.ndarray      #: level l's upper blocks are uoff[l]:uoff[l+1]
@@ -628,6 +633,8 @@ class _FusedHierarchy:
         self.auI, self.auJ = self.uI[:u0], self.uJ[:u0]
         #: the fine upper blocks' six distinct numbers, used while every one of them is exactly symmetric
         self.au6 = np.zeros((u0, 6))
+        #: the V-cycle's copy of them: ``au6`` itself in float64, a float32 copy with the float32 V-cycle
+        self.vu6 = self.au6 if f == np.float64 else np.zeros((u0, 6), dtype=f)
         self.use6 = False
         Ps = [sp.csr_array(P) for P in prolongations]
         self.pptr, self.pidx, self.pval, self.poff = _concat_csr(Ps)
@@ -660,6 +667,7 @@ class _FusedHierarchy:
         n0, u0 = len(self.adg), len(self.auv)          # (the copies: their lengths are right)
         if self.precond_dtype == np.float64:
             self.adg, self.auv = self.dg[:n0], self.uv[:u0]
+            self.vu6 = self.au6
         self.auI, self.auJ = self.uI[:u0], self.uJ[:u0]
 
     def _chunks(self, systems: list[SystemMatrix]) -> None:
@@ -707,6 +715,8 @@ class _FusedHierarchy:
         if self.precond_dtype != np.float64:     # the V-cycle's float32 copy
             self.dg[:fine.n] = self.adg
             self.uv[:len(self.auv)] = self.auv
+            if self.use6:
+                self.vu6[:] = self.au6
         self.version = fine.version
         c, Sc = self.clist, self.Sc
         eye = np.eye(3)
@@ -782,7 +792,7 @@ class _FusedHierarchy:
         threaded = threads() > 1
         if threaded:
             _set_numba_threads()
-        return PackedHierarchy(self.dg, self.uI, self.uJ, self.uv, self.au6, self.use6, self.voff, self.uoff,
+        return PackedHierarchy(self.dg, self.uI, self.uJ, self.uv, self.vu6, self.use6, self.voff, self.uoff,
                                self.clist, self.Sc, self.ws, self.dinv, self.pptr, self.pidx, self.pval, self.poff,
                                self.pnnz, self.tptr, self.tidx, self.tval, self.toff, C, upper, self.mg.omega,
                                self.lpar if threaded else self._serial, self.lpv, self.lpb, self.pbb)
@@ -811,7 +821,7 @@ class _FusedHierarchy:
         f = lambda a: np.ascontiguousarray(a, dtype=float).reshape(-1)  # noqa: E731
         h = self._hier()
         dv, it, res, conv, err = _fused.pcg(
-            self.adg, self.auI, self.auJ, self.auv, self.au6, self.use6, h.dg, h.uI, h.uJ, h.uv, h.voff, h.uoff,
+            self.adg, self.auI, self.auJ, self.auv, self.au6, self.use6, h.dg, h.uI, h.uJ, h.uv, h.u6, h.voff, h.uoff,
             h.clist, h.Sc, h.dinv, h.pptr, h.pidx, h.pval, h.poff, h.pnnz, h.tptr, h.tidx, h.tval, h.toff,
             h.C, h.upper, h.omega, h.lpar, h.lpv, h.lpb, h.pbb,
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
