@@ -205,6 +205,26 @@ def gather_sym6(src, idx, out6):
     return sym
 
 
+@njit(cache=True, parallel=True)
+def pgather_sym6(src, idx, out6):
+    """:func:`gather_sym6` on threads (a copy and a test: the same result)."""
+    n = len(idx)
+    chunks = 8
+    sym = np.ones(chunks, dtype=np.bool_)
+    for c in prange(chunks):
+        for k in range(n * c // chunks, n * (c + 1) // chunks):
+            s = 9 * idx[k]
+            out6[k, 0] = src[s]
+            out6[k, 1] = src[s + 1]
+            out6[k, 2] = src[s + 2]
+            out6[k, 3] = src[s + 4]
+            out6[k, 4] = src[s + 5]
+            out6[k, 5] = src[s + 8]
+            if src[s + 1] != src[s + 3] or src[s + 2] != src[s + 6] or src[s + 5] != src[s + 7]:
+                sym[c] = False
+    return np.all(sym)
+
+
 @njit(cache=True, fastmath={"contract"})
 def _fsymmv(dg, uI, uJ, uv, u6, use6, clist, Sc, ws, x, y, part):
     """``y = (S A S + I - S) x``, the filtered matrix (``x`` is filtered in place for the product and
@@ -756,6 +776,16 @@ error_estimate = njit(cache=True)(estimate.error_estimate)
 def gather_blocks(src, idx, out):
     """``out[k] = src[idx[k]]`` for flat arrays of 3x3 blocks (9 numbers each)."""
     for k in range(len(idx)):
+        s = 9 * idx[k]
+        t = 9 * k
+        for m in range(9):
+            out[t + m] = src[s + m]
+
+
+@njit(cache=True, parallel=True)
+def pgather_blocks(src, idx, out):
+    """:func:`gather_blocks` on threads (a copy: the same numbers)."""
+    for k in prange(len(idx)):
         s = 9 * idx[k]
         t = 9 * k
         for m in range(9):

@@ -709,14 +709,19 @@ class _FusedHierarchy:
             from ..kernels import smoothed as _smoothed
 
         flat = fine.blocks.reshape(-1)
-        _fused.gather_blocks(flat, fine.diag_index, self.adg.reshape(-1))
-        _fused.gather_blocks(flat, self._uidx[0], self.auv.reshape(-1))
-        self.use6 = bool(_fused.gather_sym6(flat, self._uidx[0], self.au6))
+        par = fine.n >= THREAD_MIN_VERTICES and threads() > 1       # the copies on threads: the same numbers
+        if par:
+            _set_numba_threads()
+        gather = _fused.pgather_blocks if par else _fused.gather_blocks
+        gather(flat, fine.diag_index, self.adg.reshape(-1))
+        gather(flat, self._uidx[0], self.auv.reshape(-1))
+        self.use6 = bool((_fused.pgather_sym6 if par else _fused.gather_sym6)(flat, self._uidx[0], self.au6))
         if self.precond_dtype != np.float64:     # the V-cycle's float32 copy
             self.dg[:fine.n] = self.adg
-            self.uv[:len(self.auv)] = self.auv
-            if self.use6:
+            if self.use6:                        # its fine products read the six numbers, not uv's level 0
                 self.vu6[:] = self.au6
+            else:
+                self.uv[:len(self.auv)] = self.auv
         self.version = fine.version
         c, Sc = self.clist, self.Sc
         eye = np.eye(3)
