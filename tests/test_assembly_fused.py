@@ -241,3 +241,30 @@ def test_numpy_path_and_core_import_do_not_import_numba(hanging_scene):
     out = subprocess.run([sys.executable, "-c", code, json.dumps(hanging_scene)], capture_output=True, text=True,
                          check=True, env=env).stdout.split()
     assert out == ["False", "False", "numpy"]
+
+
+@pytest.mark.parametrize("damping", [True, False])
+@pytest.mark.parametrize("kind", ["grid", "mesh"])
+def test_numba_spring_force_equals_numpy_path(tmp_path, kind, damping):
+    """``Springs.force`` (what the line searches, the energy balance and the explicit methods evaluate) on the
+    numba path is one compiled pass with numpy's arithmetic: numpy's force, stretched, compressed and at zero
+    length, damped or not, added to what the array held (bit for bit where it was written; asserted to round-off,
+    since numpy's einsum may sum three products in another order on another processor)."""
+    scene = _grid_scene(damping) if kind == "grid" else _mesh_scene(tmp_path, damping)
+    models = {}
+    for path in PATHS:
+        set_default_accelerator(path)
+        models[path] = ic.Simulator(scene).model
+    s0, s1 = models["numpy"].springs, models["numba"].springs
+    assert (s0.accelerator, s1.accelerator) == ("numpy", "numba")
+    rng = np.random.default_rng(7)
+    v = rng.standard_normal((s1.n, 3))
+    start = rng.standard_normal((s1.n, 3))
+    for name, x in _states(models["numba"], rng).items():
+        ref, got = start.copy(), start.copy()
+        with np.errstate(all="raise"):
+            s0.force(x, v, 0.0, ref)
+            s1.force(x, v, 0.0, got)
+        assert np.all(np.isfinite(got)), name
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-14 * np.abs(ref).max(), err_msg=f"{kind} {name}")
+        assert not np.array_equal(got, start)

@@ -118,6 +118,16 @@ class Springs:
         return f
 
     def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
+        if self.backend.compiled and out.dtype == np.float64 and out.flags.c_contiguous:
+            # one compiled pass with numpy's arithmetic: the same numbers (the line searches and energy checks
+            # evaluate forces many times a step)
+            from ..kernels.springs import spring_forces
+
+            c = np.ascontiguousarray
+            B = self._B
+            spring_forces(c(x, dtype=float), c(v, dtype=float), *self._plain, float(self._tiny), self._damped,
+                          B.indptr, B.indices, B.data, self._F, out)
+            return
         out += self._B @ self.spring_forces(x, v)
 
     def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
@@ -150,6 +160,10 @@ class Springs:
             self._bidx = c(np.stack([system.block_index(i, i), system.block_index(j, j),
                                      system.block_index(i, j), system.block_index(j, i)], axis=1), dtype=np.int64)
             self._damped = bool(np.any(self.kd))
+            #: the springs in their own order for the compiled force pass (:meth:`force`), and its scratch
+            self._plain = (c(self.i), c(self.j), c(self.k, dtype=float), c(self.kd, dtype=float),
+                           c(self.L0, dtype=float))
+            self._F = np.empty((len(self.i), 3))
             self._G = None
         else:
             self._G = system.pair_scatter(self.pairs())

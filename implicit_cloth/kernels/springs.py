@@ -155,3 +155,61 @@ def spring_lengths(x, si, sj, out):
     """``out[s] = |x[sj[s]] - x[si[s]]|``, m (the numpy path's ``Springs.lengths``, one pass)."""
     for s in range(len(si)):
         out[s] = spring_vector(x, si[s], sj[s])[3]
+
+
+@njit(cache=True, inline="always")
+def _dot3(a0, a1, a2, b0, b1, b2):
+    """``a . b`` summed as numpy's ``einsum("ij,ij->i")`` sums three products here, ``(a0 b0 + a2 b2) + a1 b1``
+    (checked bit for bit against it in the tests), so that :func:`spring_forces` gives numpy's numbers."""
+    return (a0 * b0 + a2 * b2) + a1 * b1
+
+
+@njit(cache=True)
+def spring_forces(x, v, si, sj, k, kd, L0, tiny, damped, bptr, bcol, bval, F, out):
+    """``out += B F``: the springs' forces on the vertices, with numpy's arithmetic to the last bit.
+
+    :meth:`Springs.force <implicit_cloth.effects.springs.Springs.force>` on the numpy path, one pass: the force
+    of each spring on its first vertex (``F``, (S, 3), written; the springs in their own order, ``si``,
+    ``sj``, ``k``, ``kd``, ``L0``) as ``_frame`` and ``_forces_from_frame`` compute it (no contraction into
+    fused multiply-adds: separately rounded products and sums, the dot products in einsum's order
+    (:func:`_dot3`)), then the incidence matrix ``B`` (CSR ``bptr``, ``bcol``, ``bval``: +1 at the first
+    vertex, -1 at the second) times ``F`` row by row in its stored order, as scipy's product sums, added to
+    ``out``.
+    """
+    for s in range(si.shape[0]):
+        i = si[s]
+        j = sj[s]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        l = math.sqrt(_dot3(d0, d1, d2, d0, d1, d2))
+        inv = 1.0 / l if l > tiny else 0.0
+        u0 = d0 * inv
+        u1 = d1 * inv
+        u2 = d2 * inv
+        ks = k[s]
+        L = L0[s]
+        f0 = ks * (d0 - L * u0)
+        f1 = ks * (d1 - L * u1)
+        f2 = ks * (d2 - L * u2)
+        if damped:
+            g = kd[s] * _dot3(v[j, 0] - v[i, 0], v[j, 1] - v[i, 1], v[j, 2] - v[i, 2], u0, u1, u2)
+            f0 += g * u0
+            f1 += g * u1
+            f2 += g * u2
+        F[s, 0] = f0
+        F[s, 1] = f1
+        F[s, 2] = f2
+    for r in range(bptr.shape[0] - 1):
+        y0 = 0.0
+        y1 = 0.0
+        y2 = 0.0
+        for p in range(bptr[r], bptr[r + 1]):
+            c = bcol[p]
+            a = bval[p]
+            y0 += a * F[c, 0]
+            y1 += a * F[c, 1]
+            y2 += a * F[c, 2]
+        out[r, 0] += y0
+        out[r, 1] += y1
+        out[r, 2] += y2
