@@ -19,6 +19,7 @@ Usage::
     python benchmarks/vs_blender.py                                   # hanging 32..256, drape 32..128
     python benchmarks/vs_blender.py --scenes drape --sizes 32 64 --pairs 1
     python benchmarks/vs_blender.py --fixed --threads 2
+    python benchmarks/vs_blender.py --scenes hanging --fixed --preconditioner multigrid_smoothed
 
 Needs Blender (``apt-get install blender python3-numpy``: Debian's 3.4 and the numpy its Python uses);
 without it the script says so and exits 0. Writes ``OUT/vs_blender.{json,md}``. Never asserts a time.
@@ -64,7 +65,7 @@ def scene(kind: str, n: int, fixed: bool = False, friction_speed: float | None =
 
 
 def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: int | None,
-             friction_speed: float | None = None, friction_pause: int = 0) -> dict:
+             friction_speed: float | None = None, friction_pause: int = 0, preconditioner: str | None = None) -> dict:
     """One run of ours in this process (the worker): the RESULT record."""
     import numpy as np
 
@@ -74,7 +75,7 @@ def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: i
 
     if threads is not None:
         backend.set_threads(threads)
-    solver = {"tolerance": tolerance} if tolerance else None
+    solver = {k: v for k, v in (("tolerance", tolerance), ("preconditioner", preconditioner)) if v} or None
     sim = ic.Simulator(ic.Scene.from_dict(scene(kind, n, fixed, friction_speed, friction_pause)),
                        solver=solver)
     frames = 120
@@ -98,6 +99,7 @@ def run_ours(kind: str, n: int, fixed: bool, tolerance: float | None, threads: i
             "fixed_steps": fixed, "friction_speed": friction_speed,
             "friction_pause": friction_pause, "tolerance": sim.integrator.tolerance, "threads": backend.threads(),
             "accelerator": getattr(sim.integrator.precond, "accelerator", "numpy"),
+            "preconditioner": sim.integrator.precond.name,
             "wall_s": wall, "ms_per_frame": 1e3 * wall / timed, "iterations_per_frame": its / timed,
             "solves_per_frame": solves / timed, "zmin": float(x[:, 2].min()),
             "rms_speed": float(np.sqrt(np.mean(np.sum((x - x_before) ** 2, axis=1))) * FPS),
@@ -123,6 +125,8 @@ def ours(kind: str, n: int, a: argparse.Namespace) -> dict:
         cmd += ["--friction-speed", str(a.friction_speed)]
     if a.friction_pause:
         cmd += ["--friction-pause", str(a.friction_pause)]
+    if a.preconditioner:
+        cmd += ["--preconditioner", a.preconditioner]
     return _result(subprocess.run(cmd, capture_output=True, text=True, timeout=a.timeout))
 
 
@@ -144,7 +148,8 @@ def _friction_text(res: dict) -> str:
 def markdown(res: dict) -> str:
     mode = "fixed steps (one per frame)" if res["fixed"] else "default step control (adaptive)"
     out = [f"ms per 1/60 s frame, median of {res['pairs']} alternating pairs; ours: tolerance "
-           f"{res['tolerance'] or 1e-3:g}, {mode}, {res['threads'] or 1} solver thread(s); Blender "
+           f"{res['tolerance'] or 1e-3:g}, {mode}, {res['threads'] or 1} solver thread(s), preconditioner "
+           f"{res.get('preconditioner') or 'multigrid'}; Blender "
            f"{res['blender_version']}, one thread, CG capped at 100 iterations / 1e-2 residual."
            + _friction_text(res), "",
            "| scene | grid | ours (ms/frame) | Blender (ms/frame) | ratio ours / Blender | ours: CG its / frame | "
@@ -170,13 +175,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="ours, drape: collision.friction_speed, m/s (0: Coulomb's states; default: the library's)")
     p.add_argument("--friction-pause", type=int, default=0, metavar="P",
                    help="ours, drape: collision.friction_pause, steps (0: the default, none)")
+    p.add_argument("--preconditioner", default=None, choices=["multigrid", "multigrid_smoothed"],
+                   help="ours: solver.preconditioner (default: the library's, multigrid)")
     p.add_argument("--out", default=str(HERE / "results"))
     p.add_argument("--name", default="vs_blender", help="output file stem (default vs_blender)")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
         print("RESULT " + json.dumps(run_ours(a.scenes[0], a.sizes[0], a.fixed, a.tolerance, a.threads,
-                                              a.friction_speed, a.friction_pause)))
+                                              a.friction_speed, a.friction_pause, a.preconditioner)))
         return 0
     exe = shutil.which("blender")
     if exe is None:
@@ -202,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{kind} {n}²: ours {row['ours_ms']:.1f} ms/frame, Blender {row['blender_ms']:.1f} ms/frame, "
                   f"ratio {row['ratio']:.2f}", flush=True)
     res = {"benchmark": "vs_blender", "pairs": a.pairs, "fixed": a.fixed, "tolerance": a.tolerance,
-           "threads": a.threads, "blender_version": version, "rows": rows}
+           "threads": a.threads, "preconditioner": a.preconditioner, "blender_version": version, "rows": rows}
     from _common import friction_used, machine, write_outputs
 
     res["friction_speed"], res["friction_newton"] = friction_used(a.friction_speed, None)

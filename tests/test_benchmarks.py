@@ -136,6 +136,11 @@ def test_vs_blender_skips_without_blender_and_its_worker_reports(tmp_path):
     assert res["scene"] == "drape" and res["n"] == 8 and res["fixed_steps"] is True and res["finite"]
     assert res["ms_per_frame"] > 0 and res["iterations_per_frame"] > 0 and res["solves_per_frame"] >= 1
     assert res["zmin"] > -0.35       # on the sphere (r = 0.3), not through it
+    assert res["preconditioner"] == "multigrid"
+    out = subprocess.run([sys.executable, script, "--worker", "--scenes", "hanging", "--sizes", "8", "--fixed",
+                          "--preconditioner", "multigrid_smoothed"], check=True, capture_output=True, text=True).stdout
+    res = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
+    assert res["preconditioner"] == "multigrid_smoothed" and res["finite"] and res["iterations_per_frame"] > 0
 
 
 def test_contact_energy_goal_per_row():

@@ -145,3 +145,63 @@ def test_scene_selects_the_smoothed_multigrid_and_the_report_names_it():
     base = ic.Simulator(_scene(res=(12, 12)), dt=H).run(duration=0.1)
     disp = np.linalg.norm(base.positions[-1] - base.positions[0], axis=1).max()
     assert np.linalg.norm(r.positions[-1] - base.positions[-1], axis=1).max() <= 0.01 * disp
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_chunked_setup_kernels_give_the_serial_kernels_numbers():
+    """The set-up runs the smoothing and the Galerkin product (and its filter correction) chunked by coarse
+    rows, at every thread count: every level's prolongation and coarse blocks are the serial kernels' to the
+    last bit, with pins, sliding and sticking vertices, on 1 and 2 threads; and the chunks hold every entry
+    once."""
+    from implicit_cloth import backend
+    from implicit_cloth.kernels import smoothed as ks
+    from implicit_cloth.solvers.multigrid import galerkin_chunks
+
+    sim = ic.Simulator(_scene(res=(30, 27)), dt=H)
+    m, A, b = _system(sim, steps=6)
+    nrm = np.array([0.3, -0.2, 0.93]) / np.linalg.norm([0.3, -0.2, 0.93])
+    slide, stick = np.arange(100, 160), np.arange(400, 420)
+    PS = np.concatenate([np.broadcast_to(np.eye(3) - np.outer(nrm, nrm), (len(slide), 3, 3)),
+                         np.zeros((len(stick), 3, 3))])
+    filt = Filter(m.n, m.pinned, np.concatenate([slide, stick]), PS)
+    got = {}
+    try:
+        for th in (1, 2):
+            backend.set_threads(th)
+            mg = make_preconditioner("multigrid_smoothed", m, "numba")
+            mg.setup(None, filt)
+            got[th] = mg.engine
+    finally:
+        backend.set_threads(None)
+    e1, e2 = got[1], got[2]
+    for k in ("dg", "uv", "dinv", "pval", "tval"):
+        assert np.array_equal(getattr(e1, k), getattr(e2, k)), k
+    # the serial kernels, level by level, from the same inputs
+    c = e1.clist
+    cpos = np.full(m.n, -1, dtype=np.int64)
+    cpos[c] = np.arange(len(c))
+    for l in range(len(e1._gal)):
+        v0, v1, v2 = e1.voff[l], e1.voff[l + 1], e1.voff[l + 2]
+        u0, u1, u2 = e1.uoff[l], e1.uoff[l + 1], e1.uoff[l + 2]
+        sd, su = (e1.adg, e1.auv) if l == 0 else (e1.dg[v0:v1], e1.uv[u0:u1])
+        spl, gal = e1.mg.sprol[l], e1._gal[l]
+        fc = cpos if l == 0 else e1._empty_c
+        pb = np.zeros(9 * (int(e1.pnnz[l + 1]) - int(e1.pnnz[l])))
+        ks.smooth_prolongation(sd.reshape(-1), su.reshape(-1), e1.dinv[v0:v1].reshape(-1), spl.ptr, spl.p0,
+                               spl.target, spl.t_ptr, spl.t_code, spl.t_w, e1.uI[u0:u1], e1.uJ[u0:u1], fc,
+                               e1.Sc if l == 0 else e1._empty_S, e1.mg.p_omega, pb)
+        assert np.array_equal(pb, e1.pval[9 * e1.pnnz[l]:9 * e1.pnnz[l + 1]])
+        od, ou = np.zeros((v2 - v1) * 9), np.zeros((u2 - u1) * 9)
+        args = (sd.reshape(-1), su.reshape(-1), od, ou, gal[0], gal[1], gal[3], gal[4], gal[5], gal[6], gal[8],
+                gal[9], pb)
+        ks.galerkin_blocks(*args)
+        if l == 0:
+            td = np.flatnonzero(cpos >= 0)
+            tu = np.flatnonzero((cpos[e1.auI] >= 0) | (cpos[e1.auJ] >= 0))
+            assert len(td) and len(tu)
+            ks.galerkin_blocks_filter(*args, cpos, e1.Sc, e1.auI, e1.auJ, td, tu)
+        assert np.array_equal(od, e1.dg[v1:v2].reshape(-1)) and np.array_equal(ou, e1.uv[u1:u2].reshape(-1))
+        dsrc, dord, dcb, usrc, uord, ucb = galerkin_chunks(gal[0], gal[1], gal[5], gal[6], e1.uI[u1:u2], v2 - v1)
+        for order, cb, ptr in ((dord, dcb, gal[0]), (uord, ucb, gal[5])):
+            assert np.array_equal(np.sort(order), np.arange(ptr[-1])) and cb[-1] == ptr[-1]
+            assert all(np.all(np.diff(order[cb[k]:cb[k + 1]]) > 0) for k in range(len(cb) - 1))

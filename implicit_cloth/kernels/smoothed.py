@@ -20,7 +20,7 @@ Block arrays are flat, 9 numbers a block, row-major, as in :mod:`.pcg`.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from .pcg import filter_delta, filtered_block, gal_add
 
@@ -53,18 +53,33 @@ def _term_block(sd, su, code, Sc, cpos, f, uI, uJ, tmp, out):
 
 
 @njit(cache=True, fastmath={"contract"})
-def smooth_prolongation(sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, uJ, cpos, Sc, omega, out):  # noqa: C901
+def smooth_prolongation(sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, uJ, cpos, Sc, omega, out):
     """The blocks ``P[f, c]`` of the module docstring, for every entry of ``P0`` (CSR ``ptr``, values ``p0``;
     its entry ``e``'s terms ``t_ptr[e]:t_ptr[e+1]``: block codes ``t_code`` (see :func:`_term_block`) with
     weights ``t_w = P0[j, c]``), from the level's diagonal (``sd``) and upper (``su``) blocks and its inverted
     (filtered) diagonal blocks ``dinv``; ``cpos``/``Sc``: the finest level's filter (empty elsewhere).
     Writes ``out`` (9 numbers an entry). A row whose block sum is singular keeps ``P0`` (times I)."""
+    _smooth_rows(0, len(ptr) - 1, sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, uJ, cpos, Sc, omega, out)
+
+
+@njit(cache=True, fastmath={"contract"}, parallel=True)
+def psmooth_prolongation(sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, uJ, cpos, Sc, omega, out, rb):
+    """:func:`smooth_prolongation` on threads, the rows cut at ``rb`` (each row is computed alone: the same
+    numbers)."""
+    for k in prange(len(rb) - 1):
+        _smooth_rows(rb[k], rb[k + 1], sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, uJ, cpos, Sc,
+                     omega, out)
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _smooth_rows(f0, f1, sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, uJ, cpos, Sc, omega, out):  # noqa: C901
+    """Rows ``f0:f1`` of :func:`smooth_prolongation`."""
     B = np.empty(9)
     acc = np.empty(9)
     tmp = np.empty(9)
     rs = np.empty(9)
     F = np.empty(9)
-    for f in range(len(ptr) - 1):
+    for f in range(f0, f1):
         for m in range(9):
             rs[m] = 0.0
         for e in range(ptr[f], ptr[f + 1]):
@@ -136,6 +151,81 @@ def galerkin_blocks(sd, su, od, ou, d_ptr, d_dst, d_pa, d_pb, u_ptr, u_dst, u_pa
     C = np.empty(9)
     _galerkin_list(sd, od, ou, d_ptr, d_dst, d_pa, d_pb, pb, Y, C)
     _galerkin_list(su, od, ou, u_ptr, u_dst, u_pa, u_pb, pb, Y, C)
+
+
+@njit(cache=True, fastmath={"contract"}, parallel=True)
+def pgalerkin_blocks(sd, su, od, ou, d_src, d_dst, d_pa, d_pb, d_ord, d_cb, u_src, u_dst, u_pa, u_pb, u_ord, u_cb,
+                     pb):
+    """:func:`galerkin_blocks` on threads. Chunk ``k`` owns a range of the coarse rows and adds, to the blocks of
+    its rows, their entries in the order the serial kernel adds them (``*_ord[*_cb[k]:*_cb[k + 1]]``: entries
+    ascending, the diagonal list's before the upper list's; ``*_src``: each entry's source block): every
+    coarse block is the same sum, in the same order, as serially, whatever the thread count."""
+    od[:] = 0.0
+    ou[:] = 0.0
+    for k in prange(len(d_cb) - 1):
+        Y = np.empty(9)
+        C = np.empty(9)
+        _galerkin_chunk(sd, od, ou, d_src, d_dst, d_pa, d_pb, d_ord[d_cb[k]:d_cb[k + 1]], pb, Y, C)
+        _galerkin_chunk(su, od, ou, u_src, u_dst, u_pa, u_pb, u_ord[u_cb[k]:u_cb[k + 1]], pb, Y, C)
+
+
+@njit(cache=True, fastmath={"contract"}, parallel=True)
+def pgalerkin_blocks_filter(sd, su, od, ou, d_src, d_dst, d_pa, d_pb, d_ord, d_cb, u_src, u_dst, u_pa, u_pb, u_ord,
+                            u_cb, pb, cpos, Sc, fuI, fuJ):
+    """:func:`galerkin_blocks_filter` on threads, chunked as :func:`pgalerkin_blocks`: each chunk adds
+    ``filtered - unfiltered`` of the source blocks touching a constrained vertex through those of its entries,
+    in the serial kernel's order (the same numbers)."""
+    for k in prange(len(d_cb) - 1):
+        B = np.empty(9)
+        Y = np.empty(9)
+        C = np.empty(9)
+        last_s = -1
+        last_a = -1
+        for q in range(d_cb[k], d_cb[k + 1]):
+            e = d_ord[q]
+            s = d_src[e]
+            if cpos[s] < 0:
+                continue
+            if s != last_s:
+                filter_delta(sd, s, Sc, cpos[s], cpos[s], True, B)
+            if s != last_s or d_pa[e] != last_a:
+                last_s = s
+                last_a = d_pa[e]
+                _pt_b(pb, 9 * last_a, B, 0, Y)
+            _y_p(Y, pb, 9 * d_pb[e], C)
+            gal_add(C, d_dst[e], 1.0, od, ou)
+        last_s = -1
+        last_a = -1
+        for q in range(u_cb[k], u_cb[k + 1]):
+            e = u_ord[q]
+            s = u_src[e]
+            if cpos[fuI[s]] < 0 and cpos[fuJ[s]] < 0:
+                continue
+            if s != last_s:
+                filter_delta(su, s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
+            if s != last_s or u_pa[e] != last_a:
+                last_s = s
+                last_a = u_pa[e]
+                _pt_b(pb, 9 * last_a, B, 0, Y)
+            _y_p(Y, pb, 9 * u_pb[e], C)
+            gal_add(C, u_dst[e], 1.0, od, ou)
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _galerkin_chunk(src, od, ou, esrc, dst, pa, pbi, order, pb, Y, C):
+    """The entries ``order`` of one list of :func:`pgalerkin_blocks`; ``Y`` formed again where the source
+    block or ``pa`` changes, as :func:`_galerkin_list` does (the same products)."""
+    last_s = -1
+    last_a = -1
+    for q in range(len(order)):
+        e = order[q]
+        s = esrc[e]
+        if s != last_s or pa[e] != last_a:
+            last_s = s
+            last_a = pa[e]
+            _pt_b(pb, 9 * last_a, src, 9 * s, Y)
+        _y_p(Y, pb, 9 * pbi[e], C)
+        gal_add(C, dst[e], 1.0, od, ou)
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
