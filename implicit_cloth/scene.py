@@ -41,7 +41,7 @@ PLANES: tuple[str, ...] = ("xy", "xz", "yz")
 
 DEFAULTS: dict[str, dict[str, Any]] = {
     "simulation": {"integrator": "backward_euler", "dt": 0.01, "duration": 1.0, "frame_rate": 30.0},
-    "solver": {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "multigrid", "newton_iterations": 1},
+    "solver": {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "auto", "newton_iterations": 1},
 }
 
 TOP_KEYS = ("simulation", "solver", "cloth", "effects", "obstacles", "collision")

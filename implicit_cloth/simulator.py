@@ -24,6 +24,7 @@ from .interrupt import deferred_interrupt
 from .model import Model, State
 from .scene import Scene, load_scene, self_collision
 from .scene import check_run_length as _run_length
+from .solvers import auto_preconditioner
 
 
 class Trajectory:
@@ -126,7 +127,11 @@ class Simulator:
         self.dt: float = sim["dt"]
         with _blas_threads(blas_threads):   # set-up (multigrid hierarchy, coarse factor) on the same threads
             self.model = Model(scene)
-            self.integrator = make_integrator(self.integrator_name, self.model, scene.data["solver"])
+            solver_opts = scene.data["solver"]
+            if solver_opts.get("preconditioner") == "auto":   # the multigrid for this cloth and its contacts
+                contacts = bool(scene.data["obstacles"]) or self_collision(scene.data)
+                solver_opts = {**solver_opts, "preconditioner": auto_preconditioner(self.model, contacts)}
+            self.integrator = make_integrator(self.integrator_name, self.model, solver_opts)
         x = self.model.rest_positions.copy()
         v = self.model.initial_velocity.copy()
         self.model.apply_pins(x, v, 0.0)

@@ -38,8 +38,8 @@ def test_checks_name_the_key_and_the_value():
 def test_validation_reads_the_registries_each_component_fills():
     assert INTEGRATORS.names() == ic.INTEGRATORS
     assert INTEGRATORS.where(implicit=True) == ("backward_euler", "bdf2")
-    assert PRECONDITIONERS.names() == ("multigrid", "block_jacobi", "multigrid_smoothed")
-    assert PRECONDITIONERS.where(default=True) == ("multigrid",)
+    assert PRECONDITIONERS.names() == ("auto", "multigrid", "block_jacobi", "multigrid_smoothed")
+    assert PRECONDITIONERS.where(default=True) == ("auto",)
     assert OBSTACLE_SHAPES.names() == ("sphere", "box", "cone", "capsule", "plane", "mesh")
     assert EFFECTS.names() == ("gravity", "drag", "wind")
     with pytest.raises(SceneError, match=r"^simulation\.integrator: must be one of forward_euler, .*bdf2 "

@@ -205,3 +205,29 @@ def test_chunked_setup_kernels_give_the_serial_kernels_numbers():
         for order, cb, ptr in ((dord, dcb, gal[0]), (uord, ucb, gal[5])):
             assert np.array_equal(np.sort(order), np.arange(ptr[-1])) and cb[-1] == ptr[-1]
             assert all(np.all(np.diff(order[cb[k]:cb[k + 1]]) > 0) for k in range(len(cb) - 1))
+
+
+def test_auto_smooths_large_free_grid_cloths_only(monkeypatch, tmp_path):
+    """``solver.preconditioner = "auto"`` (the default) runs the smoothed multigrid for a grid cloth from
+    AUTO_SMOOTHED_MIN_VERTICES vertices without obstacles or self-collision, the plain one otherwise (smaller,
+    in contact, a mesh cloth, or named explicitly); the report names the one that ran."""
+    import implicit_cloth.solvers as solvers
+    from implicit_cloth.scene import DEFAULTS
+
+    assert DEFAULTS["solver"]["preconditioner"] == "auto" and solvers.AUTO_SMOOTHED_MIN_VERTICES == 128 * 128
+
+    def ran(scene, **kw):
+        return ic.Simulator(scene, dt=H, **kw).integrator.precond.name
+
+    assert ran(_scene(res=(12, 12))) == "multigrid"                      # 144 vertices: below the threshold
+    monkeypatch.setattr(solvers, "AUTO_SMOOTHED_MIN_VERTICES", 100)
+    assert ran(_scene(res=(12, 12))) == "multigrid_smoothed"
+    assert ran(_scene(res=(9, 9))) == "multigrid"
+    contact = dict(_scene(res=(12, 12)), obstacles=[{"shape": "sphere", "radius": 0.2, "center": [0, 0, -0.5]}])
+    assert ran(contact) == "multigrid"
+    selfc = dict(_scene(res=(12, 12)), collision={"self_collision": True})
+    assert ran(selfc) == "multigrid"
+    assert ran(_scene(res=(12, 12)), solver={"preconditioner": "multigrid"}) == "multigrid"
+    assert ran(_scene(mesh=_mesh_file(tmp_path))) == "multigrid"          # 400 vertices, not a grid
+    r = ic.Simulator(_scene(res=(12, 12)), dt=H).run(duration=0.05)
+    assert r.report["solver"]["preconditioner"] == "multigrid_smoothed"

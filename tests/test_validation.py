@@ -87,7 +87,7 @@ BAD_VALUES = [
     ("solver.max_iterations", 2.5, "solver.max_iterations: must be an integer >= 1 and <= 1000000, got 2.5"),
     ("solver.max_iterations", True, "solver.max_iterations: must be an integer >= 1 and <= 1000000, got True"),
     ("solver.max_iterations", 10**30, "solver.max_iterations: must be an integer >= 1 and <= 1000000, got 1000"),
-    ("solver.preconditioner", "jacobi", "solver.preconditioner: must be one of multigrid, block_jacobi"),
+    ("solver.preconditioner", "jacobi", "solver.preconditioner: must be one of auto, multigrid, block_jacobi"),
     ("solver", [1], "solver: must be a table, got [1]"),
     ("cloth.resolution", [10**6, 10**6], "cloth.resolution: must give at most 16777216 vertices (4096 x 4096), "
                                          "nx * ny = 1000000000000, got [1000000, 1000000]"),

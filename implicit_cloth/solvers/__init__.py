@@ -9,25 +9,45 @@ from ..config.registry import PRECONDITIONERS
 from .pcg import BlockJacobi, Filter, SolveResult, filtered_pcg
 
 # solver.preconditioner: the names scene validation accepts, the default first
-PRECONDITIONERS.register("multigrid", default=True)
+PRECONDITIONERS.register("auto", default=True)
+PRECONDITIONERS.register("multigrid")
 PRECONDITIONERS.register("block_jacobi")
 PRECONDITIONERS.register("multigrid_smoothed")
 
-__all__ = ["BlockJacobi", "Filter", "SolveResult", "filtered_pcg", "make_preconditioner", "numba_available",
-           "set_default_accelerator"]
+__all__ = ["AUTO_SMOOTHED_MIN_VERTICES", "BlockJacobi", "Filter", "SolveResult", "auto_preconditioner",
+           "filtered_pcg", "make_preconditioner", "numba_available", "set_default_accelerator"]
+
+#: ``"auto"`` smooths the prolongations of a grid cloth without contacts from this many vertices (128²). Measured
+#: on the shared hanging scene (docs/benchmarks.md, "The refresh chunked by coarse rows"): one step a frame, one
+#: thread, 72.1 -> 58.8 ms a frame at 128², on two 361 -> 240 at 256²; with the default step control 175 -> 153
+#: at 128²; at 64² a tie (13.9 / 13.4), at 32² slower (3.9 / 4.2). With obstacles it costs more solves a frame
+#: (the 64² drape 170 -> 219 ms, 128² 1.6 -> 2.7 s), so contact scenes keep the plain multigrid.
+AUTO_SMOOTHED_MIN_VERTICES = 16384
 
 
-def make_preconditioner(name: str, model: Any, accelerator: str | None = None):
+def auto_preconditioner(model: Any, contacts: bool = False) -> str:
+    """What ``solver.preconditioner = "auto"`` (the default) runs for a model: ``"multigrid_smoothed"`` for a
+    grid cloth of at least :data:`AUTO_SMOOTHED_MIN_VERTICES` vertices in a scene without ``contacts``
+    (obstacles or self-collision), else ``"multigrid"``."""
+    grid = getattr(getattr(model, "geometry", None), "grid_shape", None) is not None
+    return "multigrid_smoothed" if grid and not contacts and model.n >= AUTO_SMOOTHED_MIN_VERTICES else "multigrid"
+
+
+def make_preconditioner(name: str, model: Any, accelerator: str | None = None, contacts: bool = False):
     """Preconditioner by its scene name (``solver.preconditioner``) for a model.
 
-    ``"multigrid"`` (default): geometric multigrid for grid cloths, smoothed
+    ``"multigrid"``: geometric multigrid for grid cloths, smoothed
     aggregation for meshes (:mod:`implicit_cloth.solvers.multigrid`), run by
     the compiled kernels when ``accelerator`` resolves to ``"numba"``
     (:mod:`implicit_cloth.backend`; ``None``: the process default).
     ``"block_jacobi"``: 3x3 block Jacobi (numpy only). ``"multigrid_smoothed"``: the same multigrid with its
     prolongations smoothed every step from the level matrices (3x3 blocks on the geometric pattern; fewer
     iterations on curved and wrinkled cloths, a dearer refresh; see :class:`.multigrid.SmoothedProlongation`).
+    ``"auto"`` (default): one of the two multigrids, by :func:`auto_preconditioner` (``contacts``: whether the
+    scene has obstacles or self-collision).
     """
+    if name == "auto":
+        name = auto_preconditioner(model, contacts)
     if name == "block_jacobi":
         return BlockJacobi(model.n)
     if name in ("multigrid", "multigrid_smoothed"):
