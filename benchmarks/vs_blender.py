@@ -145,11 +145,18 @@ def _friction_text(res: dict) -> str:
     return friction_text(res, "Ours with ")
 
 
+def _preconditioner_text(res: dict) -> str:
+    """The preconditioner asked for and, where the runs say it, the one that ran (``auto`` picks per size)."""
+    ran = sorted({o.get("preconditioner") for r in res["rows"] for o in r.get("ours_runs", [])} - {None})
+    asked = res.get("preconditioner") or "the default (auto)"
+    return asked + (f", ran: {', '.join(ran)}" if ran and ran != [asked] else "")
+
+
 def markdown(res: dict) -> str:
     mode = "fixed steps (one per frame)" if res["fixed"] else "default step control (adaptive)"
     out = [f"ms per 1/60 s frame, median of {res['pairs']} alternating pairs; ours: tolerance "
            f"{res['tolerance'] or 1e-3:g}, {mode}, {res['threads'] or 1} solver thread(s), preconditioner "
-           f"{res.get('preconditioner') or 'multigrid'}; Blender "
+           f"{_preconditioner_text(res)}; Blender "
            f"{res['blender_version']}, one thread, CG capped at 100 iterations / 1e-2 residual."
            + _friction_text(res), "",
            "| scene | grid | ours (ms/frame) | Blender (ms/frame) | ratio ours / Blender | ours: CG its / frame | "

@@ -191,8 +191,25 @@ def _msymmv(dg, uI, uJ, uv, u6, use6, part, x, y):
 def gather_sym6(src, idx, out6):
     """``out6[k]`` = the six distinct numbers of block ``src[idx[k]]`` (flat, 9 a block); returns whether
     every gathered block is exactly symmetric (only then may :func:`_symmv6` stand in for :func:`_symmv`)."""
+    return _sym6_range(src, idx, out6, 0, len(idx))
+
+
+@njit(cache=True, parallel=True)
+def pgather_sym6(src, idx, out6):
+    """:func:`gather_sym6` on threads (a copy and a test: the same result)."""
+    n = len(idx)
+    chunks = 8
+    sym = np.ones(chunks, dtype=np.bool_)
+    for c in prange(chunks):
+        sym[c] = _sym6_range(src, idx, out6, n * c // chunks, n * (c + 1) // chunks)
+    return np.all(sym)
+
+
+@njit(cache=True, inline="always")
+def _sym6_range(src, idx, out6, k0, k1):
+    """Blocks ``k0:k1`` of :func:`gather_sym6`; whether they are all exactly symmetric."""
     sym = True
-    for k in range(len(idx)):
+    for k in range(k0, k1):
         s = 9 * idx[k]
         out6[k, 0] = src[s]
         out6[k, 1] = src[s + 1]
@@ -203,26 +220,6 @@ def gather_sym6(src, idx, out6):
         if src[s + 1] != src[s + 3] or src[s + 2] != src[s + 6] or src[s + 5] != src[s + 7]:
             sym = False
     return sym
-
-
-@njit(cache=True, parallel=True)
-def pgather_sym6(src, idx, out6):
-    """:func:`gather_sym6` on threads (a copy and a test: the same result)."""
-    n = len(idx)
-    chunks = 8
-    sym = np.ones(chunks, dtype=np.bool_)
-    for c in prange(chunks):
-        for k in range(n * c // chunks, n * (c + 1) // chunks):
-            s = 9 * idx[k]
-            out6[k, 0] = src[s]
-            out6[k, 1] = src[s + 1]
-            out6[k, 2] = src[s + 2]
-            out6[k, 3] = src[s + 4]
-            out6[k, 4] = src[s + 5]
-            out6[k, 5] = src[s + 8]
-            if src[s + 1] != src[s + 3] or src[s + 2] != src[s + 6] or src[s + 5] != src[s + 7]:
-                sym[c] = False
-    return np.all(sym)
 
 
 @njit(cache=True, fastmath={"contract"})

@@ -179,36 +179,35 @@ def pgalerkin_blocks_filter(sd, su, od, ou, d_src, d_dst, d_pa, d_pb, d_ord, d_c
         B = np.empty(9)
         Y = np.empty(9)
         C = np.empty(9)
-        last_s = -1
-        last_a = -1
-        for q in range(d_cb[k], d_cb[k + 1]):
-            e = d_ord[q]
-            s = d_src[e]
-            if cpos[s] < 0:
-                continue
-            if s != last_s:
-                filter_delta(sd, s, Sc, cpos[s], cpos[s], True, B)
-            if s != last_s or d_pa[e] != last_a:
-                last_s = s
-                last_a = d_pa[e]
-                _pt_b(pb, 9 * last_a, B, 0, Y)
-            _y_p(Y, pb, 9 * d_pb[e], C)
-            gal_add(C, d_dst[e], 1.0, od, ou)
-        last_s = -1
-        last_a = -1
-        for q in range(u_cb[k], u_cb[k + 1]):
-            e = u_ord[q]
-            s = u_src[e]
-            if cpos[fuI[s]] < 0 and cpos[fuJ[s]] < 0:
-                continue
-            if s != last_s:
-                filter_delta(su, s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
-            if s != last_s or u_pa[e] != last_a:
-                last_s = s
-                last_a = u_pa[e]
-                _pt_b(pb, 9 * last_a, B, 0, Y)
-            _y_p(Y, pb, 9 * u_pb[e], C)
-            gal_add(C, u_dst[e], 1.0, od, ou)
+        _filter_chunk(sd, od, ou, d_src, d_dst, d_pa, d_pb, d_ord[d_cb[k]:d_cb[k + 1]], pb, cpos, Sc, fuI, fuJ,
+                      True, B, Y, C)
+        _filter_chunk(su, od, ou, u_src, u_dst, u_pa, u_pb, u_ord[u_cb[k]:u_cb[k + 1]], pb, cpos, Sc, fuI, fuJ,
+                      False, B, Y, C)
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _filter_chunk(src, od, ou, esrc, dst, pa, pbi, order, pb, cpos, Sc, fuI, fuJ, diag, B, Y, C):
+    """The entries ``order`` of one list of :func:`pgalerkin_blocks_filter` whose source block touches a
+    constrained vertex (``diag``: the list of diagonal blocks, vertex ``s``; else upper block ``s``, vertices
+    ``fuI[s]``, ``fuJ[s]``): ``B`` its ``filtered - unfiltered``, ``Y`` formed again where the block or ``pa``
+    changes."""
+    last_s = -1
+    last_a = -1
+    for q in range(len(order)):
+        e = order[q]
+        s = esrc[e]
+        ci = cpos[s] if diag else cpos[fuI[s]]
+        cj = cpos[s] if diag else cpos[fuJ[s]]
+        if ci < 0 and cj < 0:
+            continue
+        if s != last_s:
+            filter_delta(src, s, Sc, ci, cj, diag, B)
+        if s != last_s or pa[e] != last_a:
+            last_s = s
+            last_a = pa[e]
+            _pt_b(pb, 9 * last_a, B, 0, Y)
+        _y_p(Y, pb, 9 * pbi[e], C)
+        gal_add(C, dst[e], 1.0, od, ou)
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
