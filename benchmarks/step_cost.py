@@ -44,6 +44,7 @@ def measure(scene: ic.Scene, n: int, dt: float, warmup: int, steps: int) -> dict
     return {
         "resolution": n,
         "vertices": sim.model.n,
+        "preconditioner": sim.integrator.precond.name,          # the one that ran ("auto" picks per size)
         "springs": int(len(sim.model.springs.i)),
         "matrix_nnz": int(sim.model.system.csr.nnz),
         "ms_step": step_ms,
@@ -64,7 +65,9 @@ def measure(scene: ic.Scene, n: int, dt: float, warmup: int, steps: int) -> dict
 def markdown(res: dict) -> str:
     lines = [
         f"Backward Euler, dt = {res['dt']:.6g} s, scene `{res['scene']}`, steps {res['warmup']}-"
-        f"{res['warmup'] + res['steps']} (median), preconditioner {res['preconditioner']}, "
+        f"{res['warmup'] + res['steps']} (median), preconditioner {res['preconditioner']}"
+        + (f" (ran: {', '.join(sorted({r['preconditioner'] for r in res['rows'] if 'preconditioner' in r}))})"
+           if any("preconditioner" in r for r in res["rows"]) else "") + ", "
         f"{res['machine']['cpus']} cores, BLAS threads 1.",
         "",
         "| grid | vertices | ms/step | assembly | precond setup | solve | rest | CG its (median/max) "
@@ -87,7 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dt", type=float, default=1 / 60)
     p.add_argument("--warmup", type=int, default=20)
     p.add_argument("--steps", type=int, default=40)
-    p.add_argument("--preconditioner", choices=["multigrid", "block_jacobi"], default=None,
+    p.add_argument("--preconditioner", choices=["auto", "multigrid", "multigrid_smoothed", "block_jacobi"],
+                   default=None,
                    help="override the scene's solver.preconditioner")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     p.add_argument("--quick", action="store_true", help="tiny sizes and few steps (CI smoke test)")
