@@ -261,3 +261,18 @@ def galerkin_blocks_filter(sd, su, od, ou, d_ptr, d_dst, d_pa, d_pb, u_ptr, u_ds
         s = tu[q]
         filter_delta(su, s, Sc, cpos[fuI[s]], cpos[fuJ[s]], False, B)
         _galerkin_list(B, od, ou, u_ptr[s:s + 2], u_dst, u_pa, u_pb, pb, Y, C)
+
+
+@njit(cache=True, parallel=True)
+def ptranspose_blocks(pval, perm, out):
+    """``out[k] = pval[perm[k]]^T`` for flat 3x3 blocks (the restrictions' blocks from the prolongations'), on
+    threads (a copy: the same numbers)."""
+    n = len(perm)
+    chunks = 8
+    for c in prange(chunks):
+        for k in range(n * c // chunks, n * (c + 1) // chunks):
+            s = 9 * perm[k]
+            t = 9 * k
+            for a in range(3):
+                for b in range(3):
+                    out[t + 3 * a + b] = pval[s + 3 * b + a]

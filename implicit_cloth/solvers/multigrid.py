@@ -803,7 +803,7 @@ class _FusedHierarchy:
             if l < L:
                 _fused.inv3(self.dg[v1:v2].reshape(-1), self.dinv[v1:v2].reshape(-1))
         if mg.smoothed:               # the restrictions: P^T's blocks are P's transposed, in P^T's CSR order
-            self.tval.reshape(-1, 3, 3)[:] = self.pval.reshape(-1, 3, 3)[self._tperm].transpose(0, 2, 1)
+            _smoothed.ptranspose_blocks(self.pval, self._tperm, self.tval)
         mg._A = [None] * (L + 1)
         return self.coarse_dense()
 
