@@ -180,13 +180,15 @@ class Model:
         return self._system
 
     def linearize(self, x: np.ndarray, v: np.ndarray, t: float, c_x: float, c_v: float,
-                  w: np.ndarray | None = None):
+                  w: np.ndarray | None = None, lazy: bool = False):
         """Assemble ``A = M - c_v dF/dv - c_x dF/dx``, the force ``F(x, v)`` and ``(dF/dx) w``.
 
         Returns
         -------
         A : scipy.sparse.csr_array, (3N, 3N)
-            The same object every call (values refilled).
+            The same object every call (values refilled); with ``lazy`` the system matrix itself, finalized
+            without its CSR copy until a product or a read of its ``csr`` needs it
+            (:meth:`~implicit_cloth.assembly.SystemMatrix.finalize_lazy`).
         f : (N, 3) array
             Total force, N.
         kw : (N, 3) array or None
@@ -198,7 +200,7 @@ class Model:
         f = np.zeros_like(x)
         for e in self.effects:
             e.linearize(x, v, t, c_x, c_v, w, sysm, kw, f)
-        return sysm.finalize(), f, kw
+        return (sysm.finalize_lazy() if lazy else sysm.finalize()), f, kw
 
 
 # ---------------------------------------------------------------------- pieces

@@ -206,6 +206,47 @@ def test_finalize_reset_and_add_diagonal_agree_on_both_paths():
         sm.add_diagonal(np.ones(6))
 
 
+def test_lazy_finalize_copies_the_blocks_when_read_and_a_free_step_skips_it():
+    """``finalize_lazy`` bumps the version and defers the CSR copy: the first product or read of ``csr`` makes
+    it (the values of that finalize), on both paths; a free cloth's step with the compiled solver never reads
+    the CSR (a step's numbers against the eager finalize's were checked bit for bit when it came in)."""
+    rng = np.random.default_rng(3)
+    pairs = np.array([[0, 3], [1, 2], [2, 4], [1, 4]])
+    for p in PATHS:
+        sm = SystemMatrix(5, pairs, accelerator=p)
+        sm.blocks[:] = rng.standard_normal(sm.blocks.shape)
+        eager = sm.finalize().toarray()
+        sm.blocks *= 2.0
+        v0 = sm.version
+        assert sm.finalize_lazy() is sm and sm.version == v0 + 1 and not sm._csr_current
+        assert np.array_equal(sm._csr.toarray(), eager)                 # not copied yet
+        x = rng.standard_normal(15)
+        assert np.allclose(sm @ x, 2.0 * eager @ x, rtol=1e-14, atol=0) and sm._csr_current
+        assert np.array_equal(sm.csr.toarray(), 2.0 * eager) and sm.shape == (15, 15)
+    if not numba_available():
+        return
+    scene = {"cloth": {"size": [1.0, 1.0], "resolution": [12, 12], "mass": 0.1, "pins": ["top_left"]},
+             "effects": {"gravity": [0.0, 0.0, -9.81]}}
+    sim = ic.Simulator(scene, dt=0.01)
+    copies = []
+    backend = sim.model.system.backend
+    orig = backend.blocks_to_csr
+    backend.blocks_to_csr = lambda *a: (copies.append(1), orig(*a))[1]
+    try:
+        sim.step(3)
+        assert not copies and not sim.model.system._csr_current
+        A = sim.model.system.csr                                           # a read makes the copy
+        assert copies == [1] and sim.model.system._csr_current
+    finally:
+        backend.blocks_to_csr = orig
+    # the CSR then holds the last assembly: the blocks' values, as an eager finalize would
+    dense = np.zeros(A.shape)
+    sm = sim.model.system
+    for b, (i, j) in enumerate(zip(sm.block_rows, sm.block_cols)):
+        dense[3 * i:3 * i + 3, 3 * j:3 * j + 3] = sm.blocks[b]
+    assert np.array_equal(A.toarray(), dense)
+
+
 def test_numba_assembly_is_symmetric_exactly():
     set_default_accelerator("numba")
     sim = ic.Simulator(_grid_scene(True))

@@ -190,7 +190,7 @@ class ImplicitIntegrator(Integrator):
             np.subtract.at(sysm.blocks, sysm.diag_index[have[0]], have[1])
         if want is not None:
             np.add.at(sysm.blocks, sysm.diag_index[want[0]], want[1])
-        sysm.finalize()
+        sysm.finalize_lazy()
         self._held_damping = want
 
     def _scheme(self, state: State, h: float, info: StepInfo) -> Scheme:  # pragma: no cover - abstract
@@ -198,7 +198,7 @@ class ImplicitIntegrator(Integrator):
 
     def _linearize(self, x, v, t, c_x, c_v, w, info: StepInfo):
         t0 = time.perf_counter()
-        out = self.model.linearize(x, v, t, c_x, c_v, w)
+        out = self.model.linearize(x, v, t, c_x, c_v, w, lazy=True)   # the CSR copy only if a product needs it
         info.t_assembly += time.perf_counter() - t0
         return out
 
@@ -219,7 +219,7 @@ class ImplicitIntegrator(Integrator):
             b[c.contact] += scheme.c_v * c.friction
             if c.damped:     # the damping force is linear in v: c_v F(v0 + dv) = c_v F(v0) - c_v d dv
                 b[c.contact] += scheme.c_v * c.damping_force(state.v)
-        return scheme, sysm.csr, b
+        return scheme, sysm, b
 
     def step(self, state: State, h: float, constraints: Constraints | None = None,
              guess: np.ndarray | None = None, newton: int | None = None,

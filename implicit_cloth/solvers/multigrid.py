@@ -862,7 +862,7 @@ class _FusedHierarchy:
         from ..kernels import pcg as _fused
 
         fine = self.mg.fine
-        if A is not fine.csr:
+        if A is not fine and A is not fine._csr:        # (fine.csr would copy the blocks in: not read here)
             raise BackendMismatch("fused_pcg: A is not the fine system's own matrix (the compiled CG multiplies "
                                   "by the blocks packed at setup)")
         if fine.version != self.version:
