@@ -33,7 +33,7 @@ def auto_preconditioner(model: Any, contacts: bool = False) -> str:
     return "multigrid_smoothed" if grid and not contacts and model.n >= AUTO_SMOOTHED_MIN_VERTICES else "multigrid"
 
 
-def make_preconditioner(name: str, model: Any, accelerator: str | None = None, contacts: bool = False):
+def make_preconditioner(name: str, model: Any, accelerator: str | None = None):
     """Preconditioner by its scene name (``solver.preconditioner``) for a model.
 
     ``"multigrid"``: geometric multigrid for grid cloths, smoothed
@@ -43,11 +43,11 @@ def make_preconditioner(name: str, model: Any, accelerator: str | None = None, c
     ``"block_jacobi"``: 3x3 block Jacobi (numpy only). ``"multigrid_smoothed"``: the same multigrid with its
     prolongations smoothed every step from the level matrices (3x3 blocks on the geometric pattern; fewer
     iterations on curved and wrinkled cloths, a dearer refresh; see :class:`.multigrid.SmoothedProlongation`).
-    ``"auto"`` (default): one of the two multigrids, by :func:`auto_preconditioner` (``contacts``: whether the
-    scene has obstacles or self-collision).
+    ``"auto"`` (default): one of the two multigrids, by :func:`auto_preconditioner` (the simulator resolves it
+    knowing the scene's contacts; here as for a scene without).
     """
     if name == "auto":
-        name = auto_preconditioner(model, contacts)
+        name = auto_preconditioner(model)
     if name == "block_jacobi":
         return BlockJacobi(model.n)
     if name in ("multigrid", "multigrid_smoothed"):

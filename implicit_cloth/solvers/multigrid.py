@@ -553,11 +553,13 @@ def galerkin_chunks(d_ptr: np.ndarray, d_dst: np.ndarray, u_ptr: np.ndarray, u_d
     many entries each. ``cuI``: the coarse level's upper blocks' rows. Returns ``(d_src, d_ord, d_cb, u_src,
     u_ord, u_cb)``: each entry's source block, the entries chunk by chunk (ascending within one: the serial
     order of every coarse block's sum) and the chunks' bounds in that list."""
-    def rows(dst: np.ndarray, diag_modes: tuple) -> np.ndarray:
-        t, mode = dst >> 2, dst & 3
-        return np.where(np.isin(mode, diag_modes), t, cuI[np.where(np.isin(mode, diag_modes), 0, t)])
+    def rows(dst: np.ndarray, diag_mode: int) -> np.ndarray:
+        """The coarse row of each entry's block: ``t`` itself for a diagonal block, else upper block ``t``'s."""
+        t = dst.astype(np.int64) >> 2
+        on_diag = (dst & 3) == diag_mode
+        return np.where(on_diag, t, cuI[np.where(on_diag, 0, t)])
 
-    rd, ru = rows(d_dst.astype(np.int64), (3,)), rows(u_dst.astype(np.int64), (2,))
+    rd, ru = rows(d_dst, 3), rows(u_dst, 2)
     cum = np.cumsum(np.bincount(rd, minlength=n_coarse) + np.bincount(ru, minlength=n_coarse))
     rb = np.searchsorted(cum, np.linspace(0, cum[-1] if len(cum) else 0, chunks + 1)[1:-1], side="left")
     out: list = []
@@ -774,9 +776,9 @@ class _FusedHierarchy:
                 sargs = (src_d.reshape(-1), src_u.reshape(-1), self.dinv[v0:v1].reshape(-1), spl.ptr, spl.p0,
                          spl.target, spl.t_ptr, spl.t_code, spl.t_w, self.uI[u0:u1], self.uJ[u0:u1], filt_c,
                          Sc if len(filt_c) else self._empty_S, mg.p_omega, pb)
-                # the chunked kernels at every thread count (the same numbers as the serial ones, which the numpy
-                # path's tests hold them to): on one thread 5.6x (the smoothing) and 2.2x (the product) faster
-                # than the serial kernels at 128², a level's loop compiled as numba's parallel region is
+                # the chunked kernels at every thread count: the serial kernels' numbers (tested), and compiled as
+                # numba parallel regions they are faster even on one thread (at 128² the smoothing 5.6x, the
+                # product 2.2x)
                 _smoothed.psmooth_prolongation(*sargs, self._rows[l - 1])
                 dsrc, dord, dcb, usrc, uord, ucb = self._gal_chunks(l - 1)
                 bargs = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
