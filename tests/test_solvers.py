@@ -96,6 +96,43 @@ def test_solver_matches_direct_solve_within_tolerance(tmp_path, kind, preconditi
     assert np.array_equal(d3[partial[1], 1:], z3[partial[1], 1:])
 
 
+@pytest.mark.parametrize("preconditioner", ["multigrid", "multigrid_smoothed"])
+@pytest.mark.parametrize("accelerator", ACCELERATORS)
+def test_deep_hierarchy_of_a_larger_grid_matches_direct_solve(preconditioner, accelerator):
+    """From COARSEST_FROM vertices the grid is coarsened to a coarsest level of at most COARSEST_VERTICES (one
+    level more than before, a small dense factor): still a solve within tolerance of the direct one, the
+    constrained components exact; smaller grids keep their coarsest level of up to DIRECT_VERTICES."""
+    from implicit_cloth.solvers.multigrid import COARSEST_FROM, COARSEST_VERTICES, DIRECT_VERTICES
+
+    shapes = [P.shape for P in grid_prolongations(33, 32)]
+    assert 33 * 32 >= COARSEST_FROM and shapes[-1][1] <= COARSEST_VERTICES < shapes[-2][1]
+    small = grid_prolongations(31, 31)
+    assert 31 * 31 < COARSEST_FROM and COARSEST_VERTICES < small[-1].shape[1] <= DIRECT_VERTICES
+    assert grid_prolongations(10, 10) == []
+    sim = ic.Simulator(_scene(res=(33, 32)), dt=H, solver={"preconditioner": preconditioner})
+    m, A, b = _system(sim, steps=4)
+    rng = np.random.default_rng(1)
+    z = rng.standard_normal(b.shape) * 0.01
+    partial = np.array([m.n // 2, m.n // 3])
+    PS = np.stack([np.diag([1.0, 1.0, 0.0]), np.diag([1.0, 0.0, 0.0])])
+    filt = Filter(m.n, m.pinned, partial, PS)
+    pc = make_preconditioner(preconditioner, m, accelerator)
+    assert pc.n_levels == len(shapes) + 1
+    pc.setup(m.system, filt)
+    if accelerator == "numba":
+        A = m.system.csr
+    tol = 1e-4
+    dv, res = filtered_pcg(A, b, z, filt, pc, tol=tol, max_iterations=2000, mass=np.repeat(m.masses, 3),
+                           rule=pc.stopping_rule)
+    ref = _direct(A, b, z, filt)
+    assert res.converged
+    assert np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= tol
+    d3, z3 = dv.reshape(-1, 3), z.reshape(-1, 3)
+    assert np.array_equal(d3[m.pinned], z3[m.pinned])
+    assert d3[partial[0], 2] == z3[partial[0], 2]
+    assert np.array_equal(d3[partial[1], 1:], z3[partial[1], 1:])
+
+
 def test_multigrid_levels_and_galerkin_products():
     sim = ic.Simulator(_scene(res=(33, 20)), dt=H)
     m, A, _ = _system(sim, steps=2)

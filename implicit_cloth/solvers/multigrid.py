@@ -59,9 +59,34 @@ def _interp_1d(n: int) -> sp.csr_array:
     return sp.csr_array((vals, (rows, cols)), shape=(n, len(coarse)))
 
 
-def grid_prolongations(nx: int, ny: int, min_vertices: int = 100) -> list[sp.csr_array]:
-    """Bilinear prolongations of a grid cloth (vertex index j*nx + i), coarsened until <= min_vertices."""
-    out = []
+#: A grid cloth of at most this many vertices is solved directly (a single level: the dense factor); a grid of
+#: fewer than :data:`COARSEST_FROM` vertices is coarsened until its coarsest level has at most this many.
+DIRECT_VERTICES = 100
+#: A grid of :data:`COARSEST_FROM` vertices or more is coarsened until its coarsest level has at most this many
+#: (5 x 5 from a square grid), whose dense Cholesky factor the V-cycle solves with. At 81 vertices (the bound
+#: was 100 for every grid until 2026-12-05) the factor and its two triangular solves a cycle (243 unknowns:
+#: 0.45 ms and 67 us here) were a quarter of a 32² peer step; at 25 they are 32 us and 6 us, and the extra level
+#: of smoothing costs less than it saves (the peer scene, one step a frame, one thread, best of 3 twice:
+#: 32² 4.3 -> 3.4 ms, 64² 15.9 -> 14.8, 128² the same within the noise, 256² 443 -> 389; CG iterations
+#: -5 % .. +12 %; docs/benchmarks.md).
+COARSEST_VERTICES = 30
+#: Below this many vertices the coarsest level keeps up to :data:`DIRECT_VERTICES`. The deeper hierarchy is
+#: faster there too (16² 1.6 -> 0.9 ms a step), but it re-rolls four chaotic small test scenes (a 16² drape's
+#: landing sways longer, a 16² towel folds otherwise, a 12² cloth released from one point overshoots the
+#: strain bound, a balance premise): not yet looked into, so those sizes are unchanged for now.
+COARSEST_FROM = 1024
+
+
+def grid_prolongations(nx: int, ny: int, min_vertices: int | None = None,
+                       direct_vertices: int = DIRECT_VERTICES) -> list[sp.csr_array]:
+    """Bilinear prolongations of a grid cloth (vertex index j*nx + i), coarsened until <= min_vertices
+    (default :data:`COARSEST_VERTICES` from :data:`COARSEST_FROM` vertices, else ``direct_vertices``); none (a
+    direct solve) for a grid of at most ``direct_vertices``."""
+    out: list[sp.csr_array] = []
+    if nx * ny <= direct_vertices:
+        return out
+    if min_vertices is None:
+        min_vertices = COARSEST_VERTICES if nx * ny >= COARSEST_FROM else direct_vertices
     while nx * ny > min_vertices and (nx > 2 or ny > 2):
         px, py = _interp_1d(nx) if nx > 2 else sp.identity(nx, format="csr"), \
             _interp_1d(ny) if ny > 2 else sp.identity(ny, format="csr")
