@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--friction-pause", type=int, default=0, metavar="P",
                    help="ours, drape: collision.friction_pause, steps (0: the default, none)")
     p.add_argument("--preconditioner", default=None, choices=["multigrid", "multigrid_smoothed"],
-                   help="ours: solver.preconditioner (default: the library's, multigrid)")
+                   help="ours: solver.preconditioner (default: the library's, auto)")
     p.add_argument("--out", default=str(HERE / "results"))
     p.add_argument("--name", default="vs_blender", help="output file stem (default vs_blender)")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
