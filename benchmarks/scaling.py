@@ -176,12 +176,13 @@ def trajectory_error(n: int, k: float, steps: int, perturbation: float = 1e-9, s
             "perturbed_relative": ctrl / disp if disp > 0 else 0.0}
 
 
-def thread_speedup(n: int, k: float, state: ic.simulator.State, steps: int, counts: list[int]) -> dict:
+def thread_speedup(n: int, k: float, state: ic.simulator.State, steps: int, counts: list[int],
+                   preconditioner: str = "multigrid") -> dict:
     """Each step from the same state once per thread count, alternating (same machine state): ms/step
     medians, the speed-up of the last count over the first, and whether every count gave the same state."""
     from implicit_cloth import backend
 
-    sim = ic.Simulator(stiff(n, k), dt=H)
+    sim = ic.Simulator(stiff(n, k, preconditioner), dt=H)
     sim.positions, sim.velocities = state.x, state.v
     sim.state.t = state.t
     times: dict[int, list[float]] = {c: [] for c in counts}
@@ -206,12 +207,13 @@ def thread_speedup(n: int, k: float, state: ic.simulator.State, steps: int, coun
             "speedup": med[counts[0]] / med[counts[-1]], "identical": bool(same), "steps": steps}
 
 
-def big_run(n: int, k: float, steps: int, warmup: int, memory_gb: float) -> dict:
+def big_run(n: int, k: float, steps: int, warmup: int, memory_gb: float, preconditioner: str = "multigrid") -> dict:
     """One size in a process of its own (``--big-worker``): ms/step (median), iterations, peak memory. The
     process may use at most ``memory_gb`` of address space (the machine is shared): beyond that it fails with
     a MemoryError, reported in the row (``error``) instead of a time."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--big-worker", str(n), "--ks", str(k),
-           "--steps", str(steps), "--warmup", str(warmup), "--big-memory-gb", str(memory_gb)] + \
+           "--steps", str(steps), "--warmup", str(warmup), "--big-memory-gb", str(memory_gb),
+           "--big-preconditioner", preconditioner] + \
         (["--adaptive"] if ADAPTIVE else [])
     proc = subprocess.run(cmd, capture_output=True, text=True)
     for line in proc.stdout.splitlines():
@@ -221,13 +223,13 @@ def big_run(n: int, k: float, steps: int, warmup: int, memory_gb: float) -> dict
     return {"resolution": n, "vertices": n * n, "k": k, "error": tail, "memory_limit_gb": memory_gb}
 
 
-def big_worker(n: int, k: float, steps: int, warmup: int, memory_gb: float) -> dict:
+def big_worker(n: int, k: float, steps: int, warmup: int, memory_gb: float, preconditioner: str = "multigrid") -> dict:
     import resource
 
     limit = int(memory_gb * 2**30)
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     t0 = time.perf_counter()
-    sim = ic.Simulator(stiff(n, k), dt=H)
+    sim = ic.Simulator(stiff(n, k, preconditioner), dt=H)
     setup = time.perf_counter() - t0
     sim.step(warmup)
     rows = []
@@ -241,7 +243,7 @@ def big_worker(n: int, k: float, steps: int, warmup: int, memory_gb: float) -> d
             "ms_step": 1e3 * med(0), "iterations_median": med(1), "ms_assembly": 1e3 * med(2),
             "ms_setup": 1e3 * med(3), "ms_solve": 1e3 * med(4), "setup_s": setup,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-            "levels": sim.integrator.precond.n_levels}
+            "levels": sim.integrator.precond.n_levels, "preconditioner": sim.integrator.precond.name}
 
 
 def fit_exponent(rows: list[dict]) -> float | None:
@@ -269,7 +271,8 @@ def _extra_tables(res: dict) -> list[str]:
     """The large cloths' and the threads' tables."""
     out: list[str] = []
     if res.get("big"):
-        out += ["### Large cloths (one process each: ms/step, peak resident memory)", "",
+        out += [f"### Large cloths (one process each: ms/step, peak resident memory; "
+                f"{res.get('big_preconditioner', 'multigrid')})", "",
                 "| grid | vertices | levels | ms/step | assembly | setup | solve | CG its (median) | set-up (s) | "
                 "peak memory (MB) |", "|---|---|---|---|---|---|---|---|---|---|"]
         for b in res["big"]:
@@ -283,7 +286,8 @@ def _extra_tables(res: dict) -> list[str]:
         out.append("")
     if res.get("threads"):
         counts = list(res["threads"][0]["ms_step"])
-        out += ["### Solver threads (each step from the same state once per count, alternating)", "",
+        out += [f"### Solver threads (each step from the same state once per count, alternating; "
+                f"{res.get('big_preconditioner', 'multigrid')})", "",
                 "| grid | " + " | ".join(f"ms/step, {c} thread(s)" for c in counts) + " | speed-up | same numbers |",
                 "|---|" + "---|" * (len(counts) + 2)]
         for t in res["threads"]:
@@ -394,7 +398,7 @@ def _extras(a, rows: list[dict], accelerators: list[str], exponents: dict) -> tu
     """The large sizes (own processes), the thread comparison and Blender's points (when asked for)."""
     big = []
     for n in a.big_sizes:
-        b = big_run(n, a.ks[0], a.big_steps, a.big_warmup, a.big_memory_gb)
+        b = big_run(n, a.ks[0], a.big_steps, a.big_warmup, a.big_memory_gb, a.big_preconditioner)
         big.append(b)
         if "error" in b:
             print(f"k={a.ks[0]:g} {n}² (own process): failed within {a.big_memory_gb:g} GB: {b['error']}", flush=True)
@@ -403,15 +407,17 @@ def _extras(a, rows: list[dict], accelerators: list[str], exponents: dict) -> tu
               f"peak {b['peak_rss_mb']:.0f} MB", flush=True)
     done = [b for b in big if "error" not in b]
     if done:
-        pts = [(r["vertices"], r["ms_step"]) for r in rows if r["k"] == a.ks[0] and r["preconditioner"] == "multigrid"
+        pts = [(r["vertices"], r["ms_step"]) for r in rows if r["k"] == a.ks[0]
+               and r["preconditioner"] == a.big_preconditioner
                and r["accelerator"] == accelerators[0]] + [(b["vertices"], b["ms_step"]) for b in done]
         N, t = np.array(pts, dtype=float).T
         top = max(b["resolution"] for b in done)
-        exponents[f"multigrid@{a.ks[0]:g}, to {top}²"] = float(np.polyfit(np.log(N), np.log(t), 1)[0])
+        exponents[f"{a.big_preconditioner}@{a.ks[0]:g}, to {top}²"] = float(np.polyfit(np.log(N), np.log(t), 1)[0])
     threads = []
     if len(a.threads) > 1:
         for n in a.thread_sizes:
-            th = thread_speedup(n, a.ks[0], warm_state(n, a.ks[0], a.warmup), a.thread_steps, a.threads)
+            th = thread_speedup(n, a.ks[0], warm_state(n, a.ks[0], a.warmup), a.thread_steps, a.threads,
+                                a.big_preconditioner)
             threads.append(th)
             print(f"k={a.ks[0]:g} {n}² threads {a.threads}: {th['ms_step']} ms/step, speed-up {th['speedup']:.2f}x, "
                   f"identical {th['identical']}", flush=True)
@@ -472,6 +478,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--big-sizes", type=int, nargs="*", default=[],
                    help="sizes run in a process each for ms/step and peak memory (e.g. 512 1024)")
     p.add_argument("--big-steps", type=int, default=3)
+    p.add_argument("--big-preconditioner", default="multigrid", choices=["multigrid", "multigrid_smoothed"],
+                   help="the preconditioner of the --big-sizes runs, the thread comparison and the exponent fitted "
+                        "to the largest size (with the timed sizes' rows of the same preconditioner)")
     p.add_argument("--big-warmup", type=int, default=3)
     p.add_argument("--big-memory-gb", type=float, default=12.0,
                    help="address-space limit of each --big-sizes process (a shared machine), GB")
@@ -487,7 +496,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.replot:
         return replot(a.replot, Path(a.out), a.blender)
     if a.big_worker is not None:
-        print("RESULT " + json.dumps(big_worker(a.big_worker, a.ks[0], a.steps, a.warmup, a.big_memory_gb)))
+        print("RESULT " + json.dumps(big_worker(a.big_worker, a.ks[0], a.steps, a.warmup, a.big_memory_gb,
+                                                a.big_preconditioner)))
         return 0
     if a.quick:
         a.sizes, a.warmup, a.steps, a.slow_steps, a.error_samples = [8, 16], 2, 3, 3, 1
@@ -536,6 +546,7 @@ def main(argv: list[str] | None = None) -> int:
            "preconditioners": a.preconditioners, "accelerators": accelerators, "warmup": a.warmup, "steps": a.steps,
            "slow_steps": a.slow_steps, "default_solver": default_solver, "machine": machine(),
            "rows": rows, "exponents": exponents, "trajectory": traj, "big": big, "threads": threads,
+           "big_preconditioner": a.big_preconditioner,
            "blender": blender}
     md = markdown(res)
     out = Path(a.out)
