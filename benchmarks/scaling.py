@@ -370,8 +370,13 @@ def plot(res: dict, path: Path) -> None:
                       label=f"{pc} ({acc}), k={k:g} N/m" + (f" (N^{exp:.2f})" if exp is not None else ""))
     big = [b for b in res.get("big") or [] if "error" not in b]
     if big:
-        ax.loglog([b["vertices"] for b in big], [b["ms_step"] for b in big], "o", mfc="none", color="C0",
-                  label=f"multigrid, k={res['ks'][0]:g} N/m, own process")
+        bpc = res.get("big_preconditioner", "multigrid")
+        color = f"C{[pc for pc, _, _ in _series(res)].index(bpc)}" if bpc in res["preconditioners"] else "C0"
+        top = max(b["resolution"] for b in big)
+        exp = res["exponents"].get(f"{bpc}@{res['ks'][0]:g}, to {top}²")
+        ax.loglog([b["vertices"] for b in big], [b["ms_step"] for b in big], "o", mfc="none", color=color,
+                  label=f"{bpc}, k={res['ks'][0]:g} N/m, own process (3 warm-up steps)"
+                        + (f" (N^{exp:.2f} to {top}²)" if exp is not None else ""))
     if res.get("blender"):
         bl = res["blender"]
         ax.loglog([b["vertices"] for b in bl], [b["ms_frame"] for b in bl], "kx-",
@@ -386,7 +391,7 @@ def plot(res: dict, path: Path) -> None:
     ax.set_ylabel("ms per backward-Euler step (median)")
     ax.set_title("Implicit step cost vs resolution (hanging stiff cloth, dt = 1/60 s)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     from implicit_cloth.files import atomic_write
 
