@@ -806,14 +806,12 @@ class _FusedHierarchy:
                 # product 2.2x)
                 _smoothed.psmooth_prolongation(*sargs, self._rows[l - 1])
                 dsrc, dord, dcb, usrc, uord, ucb = self._gal_chunks(l - 1)
-                bargs = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
-                         self.uv[u1:u2].reshape(-1), gal[0], gal[1], gal[3], gal[4], gal[5], gal[6], gal[8], gal[9], pb)
-                _smoothed.pgalerkin_blocks(bargs[0], bargs[1], bargs[2], bargs[3], dsrc, gal[1], gal[3], gal[4],
-                                           dord, dcb, usrc, gal[6], gal[8], gal[9], uord, ucb, pb)
+                gargs = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
+                         self.uv[u1:u2].reshape(-1), dsrc, gal[1], gal[3], gal[4], dord, dcb,
+                         usrc, gal[6], gal[8], gal[9], uord, ucb, pb)
+                _smoothed.pgalerkin_blocks(*gargs)
                 if l == 1 and len(c):
-                    _smoothed.pgalerkin_blocks_filter(bargs[0], bargs[1], bargs[2], bargs[3], dsrc, gal[1], gal[3],
-                                                      gal[4], dord, dcb, usrc, gal[6], gal[8], gal[9], uord, ucb, pb,
-                                                      cpos, Sc, self.auI, self.auJ)
+                    _smoothed.pgalerkin_blocks_filter(*gargs, cpos, Sc, self.auI, self.auJ)
             else:
                 args = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
                         self.uv[u1:u2].reshape(-1), gal[0], gal[1], gal[2], gal[3], gal[4], gal[5])
