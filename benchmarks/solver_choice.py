@@ -67,7 +67,8 @@ def capture(kind: str, n: int, step: int) -> dict:
     orig = integ._solve
 
     def spy(A, b, z, filt, info, guess=None, tolerance=None):
-        rec.append({"A": sp.csr_array(A, copy=True), "b": b.reshape(-1).copy(), "z": z.reshape(-1).copy(),
+        # A is the model's SystemMatrix (finalized lazily): its CSR
+        rec.append({"A": sp.csr_array(getattr(A, "csr", A), copy=True), "b": b.reshape(-1).copy(), "z": z.reshape(-1).copy(),
                     "filt": Filter(filt.n, filt.fixed.copy(), filt.partial.copy(), filt.partial_S.copy())})
         return orig(A, b, z, filt, info, guess, tolerance)
 

@@ -167,3 +167,14 @@ def test_contact_energy_goal_per_row():
     assert ce.goal(dict(moving, finer_runs=rests[::-1]))[0] is False
     legacy = dict(moving, finer_dt=1 / 240, finer_vrms_end=0.03, finer_rest_from=None)
     assert ce.goal(legacy)[0] and ce.finer_runs(legacy)[0]["factor"] == 4
+
+
+def test_solver_choice_small_run_writes_rows(tmp_path):
+    """The systems are captured from the model's lazily finalized SystemMatrix (its CSR): a 12² run of one lever."""
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "solver_choice.py"), "--sizes", "12", "--systems",
+                    "hanging", "drape", "--levers", "jacobi", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True, cwd=ROOT / "benchmarks")
+    res = json.loads((tmp_path / "solver_choice.json").read_text())
+    rows = [r for r in res["rows"] if r["lever"] == "jacobi"]
+    assert len(rows) >= 2 and all(r["converged"] and r["true_error"] < 1e-2 for r in rows)
+
