@@ -178,3 +178,14 @@ def test_solver_choice_small_run_writes_rows(tmp_path):
     rows = [r for r in res["rows"] if r["lever"] == "jacobi"]
     assert len(rows) >= 2 and all(r["converged"] and r["true_error"] < 1e-2 for r in rows)
 
+
+def test_soft_modes_quick(tmp_path):
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "soft_modes.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True, cwd=ROOT / "benchmarks")
+    res = json.loads((tmp_path / "soft_modes_quick.json").read_text())
+    assert res["benchmark"] == "soft_modes" and res["quick"] is True
+    assert {r["system"] for r in res["rows"]} == {"hanging", "drape"}
+    for r in res["rows"]:
+        assert r["iterations"] >= 1 and r["true_error"] < 1e-2 and r["as_preconditioner_iterations"] >= 1
+    assert 0 < res["compressed"]["drape 12"]["all"] < 1
+    assert (tmp_path / "soft_modes_quick.md").read_text().count("\n| ") >= 8

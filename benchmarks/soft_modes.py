@@ -1,0 +1,179 @@
+"""Why a draped cloth costs the solver: the compressed springs' clamped transverse stiffness.
+
+``solver_choice.py`` found that the shared drape at rest on the sphere needs 2.5-3 times the CG iterations of
+the same cloth hanging free, with or without its contact constraints: the draped *state* costs, not the
+contacts. The likely reason it named: a spring shorter than its rest length has its transverse stiffness
+``k (1 - L0 / l) (I - u u^T)`` (negative) clamped to 0 in the system matrix (Baraff & Witkin 1998: the matrix
+stays SPD), so a folded, compressed cloth has many mechanisms that only the mass term ``M`` holds, soft modes
+that bilinear interpolation on the grid does not reach.
+
+This script checks it. It takes the linear system of a real step (the peer scene of ``vs_blender.py`` hanging,
+and dropped on the sphere, at step ``--step``, one step a frame) and solves it (the library's filtered PCG,
+numpy path, tolerance ``--tolerance``, with the numpy V-cycle of ``solver_choice.py``, the library's hierarchy)
+as it is and with a positive transverse stiffness ``beta k c_x (I - u u^T)`` added to the compressed springs of
+a family (all, structural, shear or bend) at the step's start, or ``abs(k (1 - L0 / l)) c_x (I - u u^T)``
+(the absolute value of the true transverse stiffness instead of 0: the negative eigenvalue reflected, not
+zeroed, as in Chen et al., "Stabler Neo-Hookean Simulation: Absolute Eigenvalue Filtering for Projected
+Newton", SIGGRAPH 2024). If the clamped springs' mechanisms are what costs, the iterations fall towards the
+hanging cloth's as ``beta`` grows. Each variant is also used as the preconditioner of the unmodified system
+(the V-cycle built from the stiffened matrix, CG on the true one): whether the stiffening could be a
+preconditioner-only lever.
+
+The stiffened matrices are *not* the library's system (the step would change): a diagnosis, not a lever.
+
+Usage::
+
+    python benchmarks/soft_modes.py                    # 32², 64² (~2 min on 2 shared cores)
+    python benchmarks/soft_modes.py --sizes 32 64 128  # (~10 min; benchmarks/results/soft_modes.{json,md})
+
+Writes ``OUT/soft_modes.{json,md}``. Never asserts.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+from _common import ROOT, ic, machine, write_outputs
+from solver_choice import VCycle, direct
+from vs_blender import scene as peer_scene
+
+from implicit_cloth.solvers.multigrid import grid_prolongations
+from implicit_cloth.solvers.pcg import Filter, filtered_pcg
+
+#: (label, family stiffness, "all", or "abs" (every compressed spring, its own ``|1 - L0/l|`` as beta), beta)
+VARIANTS = [("as assembled", None, 0.0), ("all, 0.01 k", "all", 0.01), ("all, 0.1 k", "all", 0.1),
+            ("structural, 0.1 k", 1000.0, 0.1), ("shear, 0.1 k", 1000.0 / 3.0, 0.1), ("bend, 0.1 k", 10.0, 0.1),
+            ("bend, 1 k", 10.0, 1.0), ("all, abs(k (1 - L0/l))", "abs", 1.0), ("bend, abs(k (1 - L0/l))", "abs10", 1.0)]
+
+
+def capture(kind: str, n: int, step: int) -> dict:
+    """The last linear system of step ``step`` (one step a frame), the springs and the step's start positions."""
+    sim = ic.Simulator(ic.Scene.from_dict(peer_scene(kind, n, fixed=True)))
+    integ = sim.integrator
+    rec: list[dict] = []
+    orig = integ._solve
+
+    def spy(A, b, z, filt, info, guess=None, tolerance=None):
+        rec.append({"A": sp.csr_array(getattr(A, "csr", A), copy=True),   # (the SystemMatrix's CSR)
+                    "b": b.reshape(-1).copy(), "z": z.reshape(-1).copy(),
+                    "filt": Filter(filt.n, filt.fixed.copy(), filt.partial.copy(), filt.partial_S.copy())})
+        return orig(A, b, z, filt, info, guess, tolerance)
+
+    sim.step(step - 1)
+    x = sim.state.x.copy()
+    integ._solve = spy
+    sim.step(1)
+    r = rec[-1]
+    r.update(x=x, springs=sim.model.springs, masses=sim.model.masses.copy(), grid=sim.model.geometry.grid_shape,
+             h=sim.dt, kind=kind, n=n)
+    return r
+
+
+def transverse(sysd: dict, family, beta: float) -> sp.csr_array:
+    """``beta k c_x (I - u u^T)`` of the compressed springs of ``family`` as a (3N, 3N) matrix (c_x = h^2)."""
+    s, x, h = sysd["springs"], sysd["x"], sysd["h"]
+    d = x[s.j] - x[s.i]
+    l = np.linalg.norm(d, axis=1)
+    u = d / l[:, None]
+    pick = l < s.L0
+    if family == "abs10":
+        pick &= np.isclose(s.k, 10.0)
+    elif family not in ("all", "abs"):
+        pick &= np.isclose(s.k, family)
+    b = beta * (s.L0[pick] / l[pick] - 1.0) if family in ("abs", "abs10") else np.full(int(pick.sum()), beta)
+    T = h * h * (b * s.k[pick])[:, None, None] * (np.eye(3)[None] - u[pick, :, None] * u[pick, None, :])
+    i, j = s.i[pick], s.j[pick]
+    rows, cols, vals = [], [], []
+    for a, b, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
+        rows.append(np.repeat(3 * a[:, None] + np.arange(3), 3, axis=1).ravel())
+        cols.append(np.tile(3 * b[:, None] + np.arange(3), (1, 3)).ravel())
+        vals.append(sign * T.ravel())
+    n3 = 3 * len(x)
+    return sp.csr_array((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n3, n3))
+
+
+def compressed(sysd: dict) -> dict:
+    s, x = sysd["springs"], sysd["x"]
+    short = np.linalg.norm(x[s.j] - x[s.i], axis=1) < s.L0
+    names = {1000.0: "structural", 1000.0 / 3.0: "shear", 10.0: "bend"}
+    out = {"all": float(short.mean())}
+    for k, name in names.items():
+        fam = np.isclose(s.k, k)
+        out[name] = float(short[fam].mean()) if np.any(fam) else 0.0
+    return out
+
+
+def run(sysd: dict, tol: float, only: list[str] | None = None) -> list[dict]:
+    A, b, z, filt = sysd["A"], sysd["b"], sysd["z"], sysd["filt"]
+    Ps = grid_prolongations(*sysd["grid"])
+    mass = np.repeat(sysd["masses"], 3)
+    ref = direct(A, b, z, filt)
+    rows = []
+    for label, family, beta in VARIANTS:
+        if only is not None and label not in only and label != "as assembled":
+            continue
+        Am = A if family is None else sp.csr_array(A + transverse(sysd, family, beta))
+        refm = ref if family is None else direct(Am, b, z, filt)
+        pc = VCycle(Am, filt, Ps)
+        dv, res = filtered_pcg(Am, b, z, filt, pc, tol, 2000, mass=mass, compiled=False)
+        dv0, res0 = filtered_pcg(A, b, z, filt, pc, tol, 2000, mass=mass, compiled=False)
+        rows.append({"system": sysd["kind"], "n": sysd["n"], "variant": label, "iterations": res.iterations,
+                     "true_error": float(np.linalg.norm(dv - refm) / np.linalg.norm(refm)),
+                     "as_preconditioner_iterations": res0.iterations,
+                     "as_preconditioner_true_error": float(np.linalg.norm(dv0 - ref) / np.linalg.norm(ref))})
+        print(f"{sysd['kind']:8s} {sysd['n']:4d}² {label:18s} its {res.iterations:4d} (err {rows[-1]['true_error']:.1e});"
+              f" as preconditioner of the assembled system {res0.iterations:4d}", flush=True)
+    return rows
+
+
+def markdown(res: dict) -> str:
+    lines = ["# Soft modes of the draped cloth: compressed springs' clamped transverse stiffness", "",
+             f"Peer scene of `vs_blender.py`, one step a frame, the system of step {res['step']}; CG iterations "
+             f"to the library's stopping rule (tolerance {res['tolerance']:g}) with the numpy V-cycle of "
+             "`solver_choice.py`, with `beta k h^2 (I - u u^T)` added to the compressed springs named; in brackets "
+             "the same stiffened V-cycle as the preconditioner of the assembled system.", ""]
+    for (kind, n), frac in res["compressed"].items():
+        lines.append(f"- {kind} {n}²: springs shorter than their rest length: " +
+                     ", ".join(f"{k} {100 * v:.0f} %" for k, v in frac.items()))
+    lines += ["", "| variant | " + " | ".join(f"{k} {n}²" for k, n in res["compressed"]) + " |",
+              "|---|" + "---|" * len(res["compressed"])]
+    for label in dict.fromkeys(r["variant"] for r in res["rows"]):
+        cells = []
+        for kind, n in res["compressed"]:
+            r = next(r for r in res["rows"] if r["system"] == kind and r["n"] == n and r["variant"] == label)
+            cells.append(f"{r['iterations']} ({r['as_preconditioner_iterations']})")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", type=int, nargs="+", default=[32, 64])
+    p.add_argument("--systems", nargs="+", default=["hanging", "drape"], choices=["hanging", "drape"])
+    p.add_argument("--step", type=int, default=120, help="the step whose system is taken (120: 2 s)")
+    p.add_argument("--tolerance", type=float, default=1e-3)
+    p.add_argument("--variants", nargs="+", default=None, help="only these variants (labels; default all)")
+    p.add_argument("--quick", action="store_true", help="tiny run (CI smoke)")
+    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    a = p.parse_args(argv)
+    if a.quick:
+        a.sizes, a.step = [12], 30
+    res: dict = {"benchmark": "soft_modes", "machine": machine(), "step": a.step, "tolerance": a.tolerance,
+                 "quick": a.quick, "rows": [], "compressed": {}}
+    for n in a.sizes:
+        for kind in a.systems:
+            sysd = capture(kind, n, a.step)
+            res["compressed"][(kind, n)] = compressed(sysd)
+            res["rows"] += run(sysd, a.tolerance, a.variants)
+    md = markdown(res)
+    res["compressed"] = {f"{k} {n}": v for (k, n), v in res["compressed"].items()}
+    write_outputs(a.out, "soft_modes" + ("_quick" if a.quick else ""), res, md)
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
