@@ -263,7 +263,10 @@ def _section_lines(r: RunReport) -> list[str]:
         lines.append(
             f"solver       {s.preconditioner} PCG ({s.accelerator}), iterations mean {s.mean_iterations:.1f} / "
             f"max {s.max_iterations}, tolerance {s.tolerance:g} on the error of dv (max relative residual "
-            f"{s.max_residual:.3g}), unconverged steps {s.unconverged_steps}")
+            f"{s.max_residual:.3g}), unconverged steps {s.unconverged_steps}"
+            + (f"; every attempt: {s.mean_attempted_solves:.2f} solves and {s.mean_attempted_iterations:.1f} "
+               f"iterations a step" if s.mean_attempted_solves is not None
+               and s.mean_attempted_solves > s.mean_solves else ""))
     a = r.adaptive
     if a:
         lines.append(f"adaptive     {a.substeps} substeps, {a.retries} retries (halved), {a.newton_retries} redone "

@@ -108,6 +108,10 @@ class SolverReport(Record):
     #: the tolerance of the solves of steps with contacts (``solver.contact_tolerance``; absent in reports
     #: written before it existed)
     contact_tolerance: float | None = None
+    #: linear solves and CG iterations per step of every attempt, those adaptive stepping discarded (redone
+    #: with Newton iterations or a smaller step) included (None in reports written before they existed)
+    mean_attempted_solves: float | None = None
+    mean_attempted_iterations: float | None = None
 
     OPTIONAL_KEYS: ClassVar[frozenset[str]] = frozenset({"contact_tolerance"})
 

@@ -495,7 +495,8 @@ class _Recorder:
             self.frames["t_collision"] = []
         self.positions: list[np.ndarray] = []
         self.totals = {"steps": 0, "iterations": 0, "max_iterations": 0, "max_residual": 0.0,
-                       "unconverged_steps": 0, "solves": 0, "max_newton": 0}
+                       "unconverged_steps": 0, "solves": 0, "max_newton": 0, "attempted_solves": 0,
+                       "attempted_iterations": 0}
         self.acc = {"it": 0, "res": 0.0, "t_assembly": 0.0, "t_setup": 0.0, "t_solve": 0.0, "t_other": 0.0}
         self.status, self.reason = "ok", ""
         self.next_frame = 1
@@ -541,6 +542,8 @@ class _Recorder:
         tot["max_iterations"] = max(tot["max_iterations"], info.iterations)
         tot["max_residual"] = max(tot["max_residual"], info.residual)
         tot["solves"] += info.solves
+        tot["attempted_solves"] += max(info.attempted_solves, info.solves)
+        tot["attempted_iterations"] += max(info.attempted_iterations, info.iterations)
         tot["max_newton"] = max(tot["max_newton"], info.newton_iterations)
         if not info.converged:
             tot["unconverged_steps"] += 1
@@ -657,6 +660,9 @@ class _Recorder:
                 "max_residual": tot["max_residual"],
                 "unconverged_steps": tot["unconverged_steps"],
                 "mean_solves": tot["solves"] / n,
+                # every solve and CG iteration made, those of the attempts adaptive stepping discarded included
+                "mean_attempted_solves": tot["attempted_solves"] / n,
+                "mean_attempted_iterations": tot["attempted_iterations"] / n,
                 "max_newton_iterations": tot["max_newton"],
                 "threads": threads() if getattr(integ.precond, "compiled", False) else 1,
                 "blas_threads": sim.blas_threads,

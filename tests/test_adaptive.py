@@ -257,3 +257,38 @@ def test_redone_tells_in_advance_which_substeps_advance_discards():
     done = [calls[i + 1][0] is calls[i][0] for i in range(len(calls) - 1)]
     assert said == done and sum(done) > 3
     assert any(f and not r for _, r, f in calls[:-1])       # failed at the smallest step: kept, not redone
+
+
+def test_the_report_counts_every_solve_discarded_attempts_included(monkeypatch):
+    """``mean_attempted_solves`` / ``mean_attempted_iterations`` count every linear solve the run made (each
+    counted here as the integrator makes it), the discarded attempts' too; ``mean_solves`` / ``mean_iterations``
+    only the accepted substeps'."""
+    from implicit_cloth.integrators.base import ImplicitIntegrator
+
+    made = {"solves": 0, "iterations": 0}
+    solve = ImplicitIntegrator._solve
+
+    def counted(self, A, b, z, filt, info, *args, **kw):
+        before = info.iterations
+        out = solve(self, A, b, z, filt, info, *args, **kw)
+        made["solves"] += 1
+        made["iterations"] += info.iterations - before
+        return out
+
+    monkeypatch.setattr(ImplicitIntegrator, "_solve", counted)
+    traj = _perturbed(_flat(1e5)).run(frame_rate=240)
+    rep = traj.report
+    s, n = rep["solver"], rep["steps"]
+    ad = rep["adaptive"]
+    assert ad["newton_retries"] + ad["retries"] > 0            # attempts were discarded
+    assert round(s["mean_attempted_solves"] * n) == made["solves"]
+    assert round(s["mean_attempted_iterations"] * n) == made["iterations"]
+    assert s["mean_attempted_solves"] * n >= s["mean_solves"] * n + ad["newton_retries"] + ad["retries"]
+    assert s["mean_attempted_iterations"] > s["mean_iterations"]
+
+
+def test_without_adaptive_stepping_every_solve_is_an_accepted_one():
+    sim = _perturbed(_flat(1e3, adaptive={"enabled": False}))
+    s = sim.run(frame_rate=240).report["solver"]
+    assert s["mean_attempted_solves"] == s["mean_solves"] >= 1
+    assert s["mean_attempted_iterations"] == s["mean_iterations"] > 0

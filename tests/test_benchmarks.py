@@ -135,6 +135,9 @@ def test_vs_blender_skips_without_blender_and_its_worker_reports(tmp_path):
     res = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
     assert res["scene"] == "drape" and res["n"] == 8 and res["fixed_steps"] is True and res["finite"]
     assert res["ms_per_frame"] > 0 and res["iterations_per_frame"] > 0 and res["solves_per_frame"] >= 1
+    # fixed steps: no attempt discarded, every solve an accepted one
+    assert res["attempted_solves_per_frame"] == res["solves_per_frame"]
+    assert res["attempted_iterations_per_frame"] == res["iterations_per_frame"]
     assert res["zmin"] > -0.35       # on the sphere (r = 0.3), not through it
     assert res["preconditioner"] == "multigrid"
     out = subprocess.run([sys.executable, script, "--worker", "--scenes", "hanging", "--sizes", "8", "--fixed",
