@@ -7,7 +7,7 @@ contacts. The likely reason it named: a spring shorter than its rest length has 
 stays SPD), so a folded, compressed cloth has many mechanisms that only the mass term ``M`` holds, soft modes
 that bilinear interpolation on the grid does not reach.
 
-This script checks it. It takes the linear system of a real step (the peer scene of ``vs_blender.py`` hanging,
+This script checks it. It takes the linear system of a real step (``solver_choice.capture``: the peer scene of ``vs_blender.py`` hanging,
 and dropped on the sphere, at step ``--step``, one step a frame) and solves it (the library's filtered PCG,
 numpy path, tolerance ``--tolerance``, with the numpy V-cycle of ``solver_choice.py``, the library's hierarchy)
 as it is and with a positive transverse stiffness ``beta k c_x (I - u u^T)`` added to the compressed springs of
@@ -36,40 +36,16 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-from _common import ROOT, ic, machine, write_outputs
-from solver_choice import VCycle, direct
-from vs_blender import scene as peer_scene
+from _common import ROOT, machine, write_outputs
+from solver_choice import VCycle, capture, direct
 
 from implicit_cloth.solvers.multigrid import grid_prolongations
-from implicit_cloth.solvers.pcg import Filter, filtered_pcg
+from implicit_cloth.solvers.pcg import filtered_pcg
 
 #: (label, family stiffness, "all", or "abs" (every compressed spring, its own ``|1 - L0/l|`` as beta), beta)
 VARIANTS = [("as assembled", None, 0.0), ("all, 0.01 k", "all", 0.01), ("all, 0.1 k", "all", 0.1),
             ("structural, 0.1 k", 1000.0, 0.1), ("shear, 0.1 k", 1000.0 / 3.0, 0.1), ("bend, 0.1 k", 10.0, 0.1),
             ("bend, 1 k", 10.0, 1.0), ("all, abs(k (1 - L0/l))", "abs", 1.0), ("bend, abs(k (1 - L0/l))", "abs10", 1.0)]
-
-
-def capture(kind: str, n: int, step: int) -> dict:
-    """The last linear system of step ``step`` (one step a frame), the springs and the step's start positions."""
-    sim = ic.Simulator(ic.Scene.from_dict(peer_scene(kind, n, fixed=True)))
-    integ = sim.integrator
-    rec: list[dict] = []
-    orig = integ._solve
-
-    def spy(A, b, z, filt, info, guess=None, tolerance=None):
-        rec.append({"A": sp.csr_array(getattr(A, "csr", A), copy=True),   # (the SystemMatrix's CSR)
-                    "b": b.reshape(-1).copy(), "z": z.reshape(-1).copy(),
-                    "filt": Filter(filt.n, filt.fixed.copy(), filt.partial.copy(), filt.partial_S.copy())})
-        return orig(A, b, z, filt, info, guess, tolerance)
-
-    sim.step(step - 1)
-    x = sim.state.x.copy()
-    integ._solve = spy
-    sim.step(1)
-    r = rec[-1]
-    r.update(x=x, springs=sim.model.springs, masses=sim.model.masses.copy(), grid=sim.model.geometry.grid_shape,
-             h=sim.dt, kind=kind, n=n)
-    return r
 
 
 def transverse(sysd: dict, family, beta: float) -> sp.csr_array:
@@ -165,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
                  "quick": a.quick, "rows": [], "compressed": {}}
     for n in a.sizes:
         for kind in a.systems:
-            sysd = capture(kind, n, a.step)
+            sysd = capture(kind, n, a.step, fixed=True)
             res["compressed"][(kind, n)] = compressed(sysd)
             res["rows"] += run(sysd, a.tolerance, a.variants)
     md = markdown(res)

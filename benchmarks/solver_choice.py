@@ -58,9 +58,10 @@ LEVERS = {
 }
 
 
-def capture(kind: str, n: int, step: int) -> dict:
-    """The linear system of step ``step`` of a default run (first solve for ``stiff``, last for the others)."""
-    d = hanging_stiff(n, 1e4) if kind == "stiff" else peer_scene(kind, n)
+def capture(kind: str, n: int, step: int, fixed: bool = False) -> dict:
+    """The linear system of step ``step`` of a default run (first solve for ``stiff``, last for the others;
+    ``fixed``: one step a frame, no adaptive stepping), with the model's springs and the step's start positions."""
+    d = hanging_stiff(n, 1e4) if kind == "stiff" else peer_scene(kind, n, fixed=fixed)
     sim = ic.Simulator(ic.Scene.from_dict(d))
     integ = sim.integrator
     rec: list[dict] = []
@@ -78,7 +79,7 @@ def capture(kind: str, n: int, step: int) -> dict:
     sim.step(1)
     r = rec[0] if kind == "stiff" else rec[-1]
     r.update(masses=sim.model.masses.copy(), grid=sim.model.geometry.grid_shape, kind=kind, n=n, step=step,
-             solves_in_step=len(rec), x=x)
+             solves_in_step=len(rec), x=x, springs=sim.model.springs, h=sim.dt)
     return r
 
 
