@@ -7,15 +7,15 @@ contacts. The likely reason it named: a spring shorter than its rest length has 
 stays SPD), so a folded, compressed cloth has many mechanisms that only the mass term ``M`` holds, soft modes
 that bilinear interpolation on the grid does not reach.
 
-This script checks it. It takes the linear system of a real step (``solver_choice.capture``: the peer scene of ``vs_blender.py`` hanging,
-and dropped on the sphere, at step ``--step``, one step a frame) and solves it (the library's filtered PCG,
-numpy path, tolerance ``--tolerance``, with the numpy V-cycle of ``solver_choice.py``, the library's hierarchy)
-as it is and with a positive transverse stiffness ``beta k c_x (I - u u^T)`` added to the compressed springs of
-a family (all, structural, shear or bend) at the step's start, or ``abs(k (1 - L0 / l)) c_x (I - u u^T)``
-(the absolute value of the true transverse stiffness instead of 0: the negative eigenvalue reflected, not
-zeroed, as in Chen et al., "Stabler Neo-Hookean Simulation: Absolute Eigenvalue Filtering for Projected
-Newton", SIGGRAPH 2024). If the clamped springs' mechanisms are what costs, the iterations fall towards the
-hanging cloth's as ``beta`` grows. Each variant is also used as the preconditioner of the unmodified system
+This script checks it. It takes the linear system of a real step (``solver_choice.capture``: the peer scene of
+``vs_blender.py`` hanging, and dropped on the sphere, at step ``--step``, one step a frame) and solves it (the
+library's filtered PCG, numpy path, tolerance ``--tolerance``, with the numpy V-cycle of ``solver_choice.py``,
+the library's hierarchy) as it is and with a positive transverse stiffness ``beta k c_x (I - u u^T)`` added to
+the compressed springs of a family (all, structural, shear or bend) at the step's start, or ``abs(k (1 - L0 / l))
+c_x (I - u u^T)`` (the absolute value of the true transverse stiffness instead of 0: the negative eigenvalue
+reflected, not zeroed, as in Chen et al., "Stabler Neo-Hookean Simulation: Absolute Eigenvalue Filtering for
+Projected Newton", SIGGRAPH 2024). If the clamped springs' mechanisms are what costs, the iterations fall towards
+the hanging cloth's as ``beta`` grows. Each variant is also used as the preconditioner of the unmodified system
 (the V-cycle built from the stiffened matrix, CG on the true one): whether the stiffening could be a
 preconditioner-only lever.
 
