@@ -113,7 +113,8 @@ class SolverReport(Record):
     mean_attempted_solves: float | None = None
     mean_attempted_iterations: float | None = None
 
-    OPTIONAL_KEYS: ClassVar[frozenset[str]] = frozenset({"contact_tolerance"})
+    OPTIONAL_KEYS: ClassVar[frozenset[str]] = frozenset({"contact_tolerance", "mean_attempted_solves",
+                                                         "mean_attempted_iterations"})
 
 
 @dataclass
