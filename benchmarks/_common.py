@@ -122,3 +122,15 @@ def friction_text(res: dict, who: str = "") -> str:
                      "row that missed the law")
     text = who + text
     return f" {text[0].upper()}{text[1:]}."
+
+
+def system_table(rows: list[dict], columns: list, label_key: str, labels, cell) -> list[str]:
+    """Markdown lines of a table with a row per label (``r[label_key]``) and a column per ``(system, n)``, each
+    cell ``cell(r)`` of the row ``r`` of that system, size and label."""
+    out = [f"| {label_key} | " + " | ".join(f"{k} {n}²" for k, n in columns) + " |",
+           "|---|" + "---|" * len(columns)]
+    for label in labels:
+        cells = [cell(next(r for r in rows if r["system"] == k and r["n"] == n and r[label_key] == label))
+                 for k, n in columns]
+        out.append(f"| {label} | " + " | ".join(cells) + " |")
+    return out

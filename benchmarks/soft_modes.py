@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-from _common import ROOT, machine, write_outputs
+from _common import ROOT, machine, system_table, write_outputs
 from solver_choice import VCycle, capture, direct
 
 from implicit_cloth.solvers.multigrid import grid_prolongations
@@ -114,14 +114,9 @@ def markdown(res: dict) -> str:
     for (kind, n), frac in res["compressed"].items():
         lines.append(f"- {kind} {n}²: springs shorter than their rest length: " +
                      ", ".join(f"{k} {100 * v:.0f} %" for k, v in frac.items()))
-    lines += ["", "| variant | " + " | ".join(f"{k} {n}²" for k, n in res["compressed"]) + " |",
-              "|---|" + "---|" * len(res["compressed"])]
-    for label in dict.fromkeys(r["variant"] for r in res["rows"]):
-        cells = []
-        for kind, n in res["compressed"]:
-            r = next(r for r in res["rows"] if r["system"] == kind and r["n"] == n and r["variant"] == label)
-            cells.append(f"{r['iterations']} ({r['as_preconditioner_iterations']})")
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines += [""] + system_table(res["rows"], list(res["compressed"]), "variant",
+                                 dict.fromkeys(r["variant"] for r in res["rows"]),
+                                 lambda r: f"{r['iterations']} ({r['as_preconditioner_iterations']})")
     return "\n".join(lines) + "\n"
 
 

@@ -192,3 +192,15 @@ def test_soft_modes_quick(tmp_path):
         assert r["iterations"] >= 1 and r["true_error"] < 1e-2 and r["as_preconditioner_iterations"] >= 1
     assert 0 < res["compressed"]["drape 12"]["all"] < 1
     assert (tmp_path / "soft_modes_quick.md").read_text().count("\n| ") >= 8
+
+
+def test_rigid_coarse_quick(tmp_path):
+    """The rigid-mode aggregation study runs its levers on captured systems; each solves to the tolerance."""
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "rigid_coarse.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True, cwd=ROOT / "benchmarks")
+    res = json.loads((tmp_path / "rigid_coarse_quick.json").read_text())
+    assert res["benchmark"] == "rigid_coarse" and res["quick"] is True
+    assert {r["lever"] for r in res["rows"]} == {"bilinear", "rigid", "rigid + SA below", "SA everywhere"}
+    for r in res["rows"]:
+        assert r["converged"] and r["iterations"] >= 1 and r["true_error"] < 1e-2 and r["passes"] > 0
+    assert (tmp_path / "rigid_coarse_quick.md").read_text().count("\n| ") == 5      # header, four levers
