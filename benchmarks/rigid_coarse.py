@@ -138,25 +138,19 @@ class Hierarchy:
         x = x + P @ self.apply(P.T @ (r - A @ x), level + 1)
         return x + OMEGA * (D @ (r - A @ x))
 
-    def coarse_share(self) -> float:
-        return sum(a.nnz for a in self.A[1:]) / self.A[0].nnz
-
-    def passes(self) -> float:
-        """Fine-matrix passes per CG iteration: CG's product, a pre- and post-sweep with its residual on every
-        level (by the level's entries), the transfers (each prolongation's entries, twice)."""
-        fine = self.A[0].nnz
-        return 1.0 + 2.0 * sum(a.nnz for a in self.A[:-1]) / fine + 2.0 * sum(p.nnz for p in self.P) / fine
 
 
-class Bilinear(VCycle):
-    """The library's hierarchy (solver_choice's numpy V-cycle), with the measures of :class:`Hierarchy`."""
+def coarse_share(pc) -> float:
+    """The coarse matrices' entries over the fine one's (a hierarchy's level matrices ``pc.A``)."""
+    return sum(a.nnz for a in pc.A[1:]) / pc.A[0].nnz
 
-    def coarse_share(self) -> float:
-        return sum(a.nnz for a in self.A[1:]) / self.A[0].nnz
 
-    def passes(self) -> float:
-        fine = self.A[0].nnz
-        return 1.0 + 2.0 * sum(a.nnz for a in self.A[:-1]) / fine + 2.0 * sum(p.nnz for p in self.P) / fine
+def passes(pc) -> float:
+    """Fine-matrix passes per CG iteration of a hierarchy (``pc.A``, ``pc.P``): CG's product, a pre- and
+    post-sweep with its residual on every level (by the level's entries), the transfers (each prolongation's
+    entries, twice)."""
+    fine = pc.A[0].nnz
+    return 1.0 + 2.0 * sum(a.nnz for a in pc.A[:-1]) / fine + 2.0 * sum(p.nnz for p in pc.P) / fine
 
 
 def solve_all(sysd: dict, tol: float) -> list[dict]:
@@ -167,12 +161,12 @@ def solve_all(sysd: dict, tol: float) -> list[dict]:
     ref = direct(A, b, z, filt)
     rows = []
     for lever in LEVERS:
-        pc = (Bilinear(A, filt, grid_prolongations(*sysd["grid"])) if lever == "bilinear"
+        pc = (VCycle(A, filt, grid_prolongations(*sysd["grid"])) if lever == "bilinear"      # the library's
               else Hierarchy(Af, sysd["x"], sysd["grid"], lever))
         dv, res = filtered_pcg(A, b, z, filt, pc, tol, 2000, mass=mass, compiled=False)
         row = {"system": sysd["kind"], "n": sysd["n"], "lever": lever, "iterations": res.iterations,
                "converged": res.converged, "true_error": float(np.linalg.norm(dv - ref) / np.linalg.norm(ref)),
-               "coarse_share": pc.coarse_share(), "passes_per_iteration": pc.passes()}
+               "coarse_share": coarse_share(pc), "passes_per_iteration": passes(pc)}
         row["passes"] = row["passes_per_iteration"] * res.iterations
         rows.append(row)
         print(f"{sysd['kind']:8s} {sysd['n']:4d}² {lever:17s} its {res.iterations:4d}  err {row['true_error']:.1e}  "

@@ -176,9 +176,10 @@ class StepController:
 
         Returns the state at ``state.t + dt`` (exactly that time) and the
         substeps' combined figures: iterations summed, residual the largest,
-        converged only if every accepted substep's solve was, timings,
-        ``attempted_solves`` and ``attempted_iterations`` summed over every
-        attempt (discarded ones included). A non-finite state at the
+        converged only if every accepted substep's solve was, timings summed
+        over every attempt (discarded ones included), the discarded attempts'
+        solves and iterations in ``discarded_solves`` and
+        ``discarded_iterations``. A non-finite state at the
         smallest step is returned as it came (the caller reports it).
         """
         units = 1 << self.max_halvings                # the nominal step in units of the smallest step
@@ -195,8 +196,6 @@ class StepController:
             size = 1 << (self.max_halvings - self.level)
             h = dt if self.level == 0 else dt / (1 << self.level)
             new, info = substep(state, h, newton)
-            total.attempted_solves += info.solves
-            total.attempted_iterations += info.iterations
             total.t_assembly += info.t_assembly
             total.t_setup += info.t_setup
             total.t_solve += info.t_solve
@@ -206,6 +205,9 @@ class StepController:
             if "nonfinite" not in failed:                  # a criterion passed: retry on it again
                 self.suspended -= set(CRITERIA) - set(failed)
             active, nonlinear, retry = self._verdict(failed, newton)
+            if retry or "nonfinite" in active:             # discarded: not booked with the accepted below
+                total.discarded_solves += info.solves
+                total.discarded_iterations += info.iterations
             if info.collision is not None:   # collision figures: of accepted substeps; time of every attempt
                 if total.collision is None:
                     total.collision = type(info.collision)()

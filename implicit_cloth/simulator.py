@@ -542,8 +542,8 @@ class _Recorder:
         tot["max_iterations"] = max(tot["max_iterations"], info.iterations)
         tot["max_residual"] = max(tot["max_residual"], info.residual)
         tot["solves"] += info.solves
-        tot["attempted_solves"] += max(info.attempted_solves, info.solves)
-        tot["attempted_iterations"] += max(info.attempted_iterations, info.iterations)
+        tot["attempted_solves"] += info.attempted_solves
+        tot["attempted_iterations"] += info.attempted_iterations
         tot["max_newton"] = max(tot["max_newton"], info.newton_iterations)
         if not info.converged:
             tot["unconverged_steps"] += 1

@@ -66,16 +66,25 @@ class StepInfo:
     #: rms over the free vertices (neither pinned nor in contact) of the step's nonlinear residual as an
     #: acceleration, ``|M (v1 - v_hat) - c_v F(x1, v1)| / (c_v m)``, m/s², when a linear step had contacts
     balance: float = 0.0
-    #: every linear solve and CG iteration made for the step, those of attempts adaptive stepping discarded
-    #: (redone with Newton iterations or a smaller step) included; ``solves`` and ``iterations`` count the
-    #: accepted substeps' only. Set by :meth:`StepController.advance <implicit_cloth.adaptive.StepController.advance>`
-    #: (0 without adaptive stepping: then the same as ``solves`` and ``iterations``)
-    attempted_solves: int = 0
-    attempted_iterations: int = 0
+    #: linear solves and CG iterations of the attempts adaptive stepping discarded (redone with Newton iterations
+    #: or a smaller step; booked by :meth:`StepController.advance <implicit_cloth.adaptive.StepController.advance>`),
+    #: which ``solves`` and ``iterations`` leave out
+    discarded_solves: int = 0
+    discarded_iterations: int = 0
     #: smoothed friction solved to convergence (``collision.friction_newton``): whether the step's friction
     #: met its law (True), or the Newton iterations did not get it there and the step is the first solve's
     #: (False); None without it
     friction_converged: bool | None = None
+
+    @property
+    def attempted_solves(self) -> int:
+        """Every linear solve made for the step, the discarded attempts' included."""
+        return self.solves + self.discarded_solves
+
+    @property
+    def attempted_iterations(self) -> int:
+        """Every CG iteration made for the step, the discarded attempts' included."""
+        return self.iterations + self.discarded_iterations
 
     def absorb(self, other: "StepInfo") -> None:
         """Add another solve of the same step: iterations and times summed, residual the largest."""
