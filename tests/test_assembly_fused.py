@@ -309,3 +309,45 @@ def test_numba_spring_force_equals_numpy_path(tmp_path, kind, damping):
         assert np.all(np.isfinite(got)), name
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-14 * np.abs(ref).max(), err_msg=f"{kind} {name}")
         assert not np.array_equal(got, start)
+
+
+@pytest.mark.parametrize("damping", [True, False])
+@pytest.mark.parametrize("kind", ["grid", "mesh"])
+def test_threaded_assembly_gives_the_serial_numbers_to_the_last_bit(tmp_path, monkeypatch, kind, damping):
+    """The spring pass and the system's reset on threads (each vertex and block gathering its springs' numbers
+    in the serial scatter's order) equal the serial pass bit for bit, on one thread and on two."""
+    from implicit_cloth import backend
+    from implicit_cloth.effects import springs as springs_mod
+
+    scene = _grid_scene(damping) if kind == "grid" else _mesh_scene(tmp_path, damping)
+    _, serial = _assemble(scene, "numba")
+    monkeypatch.setattr(springs_mod, "PARALLEL_MIN_SPRINGS", 0)
+    monkeypatch.setattr(backend, "PARALLEL_MIN_VERTICES", 0)
+    calls = []
+    orig = springs_mod.Springs._linearize_threads
+    monkeypatch.setattr(springs_mod.Springs, "_linearize_threads",
+                        lambda self, *a: (calls.append(1), orig(self, *a))[1])
+    for n in (2, 1):
+        backend.set_threads(n)
+        try:
+            _, got = _assemble(scene, "numba")
+        finally:
+            backend.set_threads(None)
+        for state in serial:
+            for what, a, b in zip(("blocks", "csr", "f", "kw"), serial[state], got[state]):
+                assert np.array_equal(a, b), f"{n} threads, {kind} {state} {what}"
+    assert len(calls) == 3       # the threaded pass ran on two threads (three states), the serial one on one
+
+
+def test_threaded_reset_writes_the_mass_diagonal_alone():
+    from implicit_cloth.kernels.assembly import preset_diagonal, reset_diagonal
+
+    rng = np.random.default_rng(4)
+    sm = SystemMatrix(5, np.array([[0, 3], [1, 2], [2, 4], [1, 4]]), accelerator="numba")
+    d = rng.uniform(1, 2, 5)
+    a, b = rng.standard_normal((2, *sm.blocks.shape))
+    reset_diagonal(a, sm.diag_index, d)
+    preset_diagonal(b, sm.diag_index, d)
+    expect = np.zeros_like(a)
+    expect[sm.diag_index] = d[:, None, None] * np.eye(3)
+    assert np.array_equal(a, expect) and np.array_equal(b, expect)
