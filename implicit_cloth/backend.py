@@ -49,22 +49,16 @@ def set_default_accelerator(name: str | None) -> None:
     _default = None if name is None else _check(name, "accelerator")
 
 
-#: From this many vertices the compiled system's reset runs on threads when more than one is allowed.
-PARALLEL_MIN_VERTICES = 16384
-
-
 def threads() -> int:
     """Threads the compiled solver may use: :func:`set_threads`, else ``$IMPLICIT_CLOTH_THREADS``, else 1.
 
-    Only the numba back-end uses more than one: on multigrid levels of at least
+    Only the numba back-end uses more than one, and only on multigrid levels of at least
     :data:`implicit_cloth.solvers.multigrid.THREAD_MIN_VERTICES` vertices (the products, smoothing sweeps,
-    transfers, CG's updates and the Galerkin refresh), and from :data:`PARALLEL_MIN_VERTICES` vertices /
-    :data:`implicit_cloth.effects.springs.PARALLEL_MIN_SPRINGS` springs the system's reset and the spring
-    assembly (each vertex and block gathering its springs' numbers in the serial pass's order); CG's dot
-    products stay serial. The numbers are the same for every thread count: the chunks, not the threads,
-    decide what is summed where, so a run is reproducible bit for bit. One thread by default: on the shared
-    2-core test machine a second thread was slower whenever other work held the other core (see
-    docs/benchmarks.md). BLAS threads are a separate setting (``Simulator(blas_threads=1)`` by default).
+    transfers and CG's updates; CG's dot products, the assembly and the Galerkin refresh stay serial). The
+    numbers are the same for every thread count: the chunks, not the threads, decide what is summed where, so a
+    run is reproducible bit for bit. One thread by default: on the shared 2-core test machine a second thread
+    was slower whenever other work held the other core (see docs/benchmarks.md). BLAS threads are a separate
+    setting (``Simulator(blas_threads=1)`` by default).
     """
     if _threads is not None:
         return _threads
@@ -78,14 +72,6 @@ def threads() -> int:
             raise ValueError(f"{_THREADS_ENV}: must be an integer >= 1, got {raw!r}")
         return n
     return 1
-
-
-def set_numba_threads() -> None:
-    """Let numba's parallel regions use :func:`threads` threads (at most its pool). Imports numba."""
-    from numba import config, set_num_threads
-
-    pool = int(config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
-    set_num_threads(max(1, min(threads(), pool)))
 
 
 def set_threads(n: int | None) -> None:
@@ -203,13 +189,9 @@ class NumbaBackend(Backend):
         from .kernels import assembly as _kernels  # noqa: F401  (imports numba; kernels compile or load from cache on use)
 
     def reset_diagonal(self, blocks: np.ndarray, diag_index: np.ndarray, d: np.ndarray) -> None:
-        from .kernels.assembly import preset_diagonal, reset_diagonal
+        from .kernels.assembly import reset_diagonal
 
-        if len(diag_index) >= PARALLEL_MIN_VERTICES and threads() > 1:   # copies only: the same values
-            set_numba_threads()
-            preset_diagonal(blocks, diag_index, d)
-        else:
-            reset_diagonal(blocks, diag_index, d)
+        reset_diagonal(blocks, diag_index, d)
 
     def add_diagonal(self, blocks: np.ndarray, diag_index: np.ndarray, d: np.ndarray) -> None:
         from .kernels.assembly import add_diagonal

@@ -36,12 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..assembly import accumulate_product
-from ..backend import Backend, get_backend, set_numba_threads, threads
-
-#: From this many springs (a 128² grid cloth has about 97 000) the compiled assembly runs on threads when more
-#: than one is allowed (:func:`implicit_cloth.backend.threads`): the same numbers (its docstring); below it a
-#: parallel region costs more than it saves.
-PARALLEL_MIN_SPRINGS = 65536
+from ..backend import Backend, get_backend
 
 
 class Springs:
@@ -162,7 +157,6 @@ class Springs:
             c = np.ascontiguousarray
             i, j = c(self.i[o]), c(self.j[o])
             self._sorted = (i, j, c(self.k[o], dtype=float), c(self.kd[o], dtype=float), c(self.L0[o], dtype=float))
-            self.__dict__.pop("_gather", None)       # the threaded pass's lists follow the binding
             self._bidx = c(np.stack([system.block_index(i, i), system.block_index(j, j),
                                      system.block_index(i, j), system.block_index(j, i)], axis=1), dtype=np.int64)
             self._damped = bool(np.any(self.kd))
@@ -182,22 +176,6 @@ class Springs:
             np.maximum(a, 0.0, out=a)
         return a
 
-    def _linearize_threads(self, args: tuple, with_w: bool, blocks: np.ndarray, kw: np.ndarray,
-                           f: np.ndarray) -> None:
-        """The compiled pass on threads: every spring's numbers first, then each vertex and block gathers its
-        springs' (:func:`implicit_cloth.kernels.springs.pspring_gather`): the serial pass's numbers to the
-        last bit."""
-        from ..kernels.springs import gather_lists, pspring_gather, pspring_terms
-
-        g = self.__dict__.get("_gather")
-        if g is None:
-            g = self._gather = (gather_lists(self._sorted[0], self._sorted[1], self._bidx),
-                                np.empty((len(self.i), 12)))
-        (vptr, vsp, bptr, bsp, blist), T = g
-        set_numba_threads()
-        pspring_terms(*args, T)  # type: ignore[call-arg]  # (numba stubs: a parallel dispatcher)
-        pspring_gather(T, with_w, vptr, vsp, bptr, bsp, blist, blocks, kw, f)
-
     def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
         """Add ``-(c_v dF/dv + c_x dF/dx)`` to the system blocks, ``(dF/dx) w`` to ``kw`` and F to ``f``.
 
@@ -215,11 +193,8 @@ class Springs:
             c = np.ascontiguousarray   # the kernel is compiled for C-contiguous float64 arrays (no copy if so)
             x, v = c(x, dtype=float), c(v, dtype=float)
             w = c(w, dtype=float) if with_w else x
-            args = (x, v, w, with_w, self._damped, *self._sorted, float(self._tiny), float(c_x), float(c_v))
-            if len(self.i) >= PARALLEL_MIN_SPRINGS and threads() > 1:
-                self._linearize_threads(args, with_w, system.blocks, kw if with_w else f, f)
-            else:
-                springs_linearize(*args, self._bidx, system.blocks, kw if with_w else f, f)
+            springs_linearize(x, v, w, with_w, self._damped, *self._sorted, float(self._tiny), float(c_x),
+                              float(c_v), self._bidx, system.blocks, kw if with_w else f, f)
             return
         d, l, u, ok, inv = self._frame(x)
         a = self._transverse(ok, inv)

@@ -15,7 +15,7 @@ compiled with ``cache=True``. Importing this module imports numba.
 
 from __future__ import annotations
 
-from numba import njit, prange
+from numba import njit
 
 
 @njit(cache=True)
@@ -53,16 +53,3 @@ def add_diagonal(blocks, diag_index, diag):
         blocks[b, 0, 0] += diag[i]
         blocks[b, 1, 1] += diag[i]
         blocks[b, 2, 2] += diag[i]
-
-
-@njit(cache=True, parallel=True)
-def preset_diagonal(blocks, diag_index, diag):
-    """:func:`reset_diagonal` on threads (copies: the same values)."""
-    B = blocks.reshape(-1)
-    for k in prange(B.shape[0]):
-        B[k] = 0.0
-    for i in prange(diag_index.shape[0]):
-        b = diag_index[i]
-        blocks[b, 0, 0] = diag[i]
-        blocks[b, 1, 1] = diag[i]
-        blocks[b, 2, 2] = diag[i]

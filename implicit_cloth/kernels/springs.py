@@ -21,18 +21,16 @@ path, fused per spring ``s = (i, j)`` (notation of Baraff & Witkin 1998, §4):
   last bit, which is the only difference besides the order of the sums (the
   springs are visited sorted by vertex, for cache locality).
 
-The pass scatters (a scatter on two threads would race on shared vertices); on threads
-(:func:`pspring_terms`, :func:`pspring_gather`) every spring's numbers are computed first and each vertex and
-block then gathers its springs' in the order the scatter adds them, so the numbers are the same to the last
-bit. Compiled with ``cache=True``: the compilation is paid once per installation. Importing this module
-imports numba.
+Single-threaded (a scatter with two threads would race on shared vertices, and
+the test machine has two shared cores). Compiled with ``cache=True``: the
+compilation is paid once per installation. Importing this module imports numba.
 """
 
 from __future__ import annotations
 
 import math
 
-from numba import njit, prange
+from numba import njit
 
 
 @njit(cache=True, inline="always")
@@ -57,58 +55,6 @@ def _add_sym(B, b, sign, c00, c01, c02, c11, c12, c22):
     B[p + 6] += sign * c02
     B[p + 7] += sign * c12
     B[p + 8] += sign * c22
-
-
-@njit(cache=True, inline="always")
-def _spring_terms(x, v, w, with_w, damped, i, j, ks, kds, L, tiny, c_x, c_v):
-    """One spring's force on ``i`` (``f``), its ``(dF/dx) w`` on ``i`` (``q``, zeros without ``with_w``) and the
-    upper triangle of its system block ``C`` (module docstring): the arithmetic of :func:`springs_linearize`."""
-    d0, d1, d2, l = spring_vector(x, i, j)
-    if l > tiny:
-        inv = 1.0 / l
-        a = 1.0 - L * inv
-    else:
-        inv = 0.0
-        a = 0.0 if L > 0.0 else 1.0
-    if a < 0.0:
-        a = 0.0
-    u0 = d0 * inv
-    u1 = d1 * inv
-    u2 = d2 * inv
-    # force on i: k (d - L0 u) + kd ((v_j - v_i) . u) u
-    f0 = ks * (d0 - L * u0)
-    f1 = ks * (d1 - L * u1)
-    f2 = ks * (d2 - L * u2)
-    if damped:
-        g = kds * ((v[j, 0] - v[i, 0]) * u0 + (v[j, 1] - v[i, 1]) * u1 + (v[j, 2] - v[i, 2]) * u2)
-        f0 += g * u0
-        f1 += g * u1
-        f2 += g * u2
-    # (dF/dx) w
-    q0 = 0.0
-    q1 = 0.0
-    q2 = 0.0
-    if with_w:
-        w0 = w[j, 0] - w[i, 0]
-        w1 = w[j, 1] - w[i, 1]
-        w2 = w[j, 2] - w[i, 2]
-        ka = ks * a
-        kb = ks * (1.0 - a) * (u0 * w0 + u1 * w1 + u2 * w2)
-        q0 = ka * w0 + kb * u0
-        q1 = ka * w1 + kb * u1
-        q2 = ka * w2 + kb * u2
-    # C = alpha I + beta u u^T (exactly symmetric)
-    alpha = c_x * ks * a
-    beta = c_x * ks * (1.0 - a) + c_v * kds
-    b0 = beta * u0
-    b1 = beta * u1
-    c00 = b0 * u0 + alpha
-    c01 = b0 * u1
-    c02 = b0 * u2
-    c11 = b1 * u1 + alpha
-    c12 = b1 * u2
-    c22 = beta * u2 * u2 + alpha
-    return f0, f1, f2, q0, q1, q2, c00, c01, c02, c11, c12, c22
 
 
 @njit(cache=True)
@@ -142,107 +88,66 @@ def springs_linearize(x, v, w, with_w, damped, si, sj, k, kd, L0, tiny, c_x, c_v
     for s in range(si.shape[0]):
         i = si[s]
         j = sj[s]
-        f0, f1, f2, q0, q1, q2, c00, c01, c02, c11, c12, c22 = _spring_terms(
-            x, v, w, with_w, damped, i, j, k[s], kd[s], L0[s], tiny, c_x, c_v)
+        d0, d1, d2, l = spring_vector(x, i, j)
+        ks = k[s]
+        L = L0[s]
+        if l > tiny:
+            inv = 1.0 / l
+            a = 1.0 - L * inv
+        else:
+            inv = 0.0
+            a = 0.0 if L > 0.0 else 1.0
+        if a < 0.0:
+            a = 0.0
+        u0 = d0 * inv
+        u1 = d1 * inv
+        u2 = d2 * inv
+        # force on i: k (d - L0 u) + kd ((v_j - v_i) . u) u
+        f0 = ks * (d0 - L * u0)
+        f1 = ks * (d1 - L * u1)
+        f2 = ks * (d2 - L * u2)
+        if damped:
+            g = kd[s] * ((v[j, 0] - v[i, 0]) * u0 + (v[j, 1] - v[i, 1]) * u1 + (v[j, 2] - v[i, 2]) * u2)
+            f0 += g * u0
+            f1 += g * u1
+            f2 += g * u2
         f[i, 0] += f0
         f[i, 1] += f1
         f[i, 2] += f2
         f[j, 0] -= f0
         f[j, 1] -= f1
         f[j, 2] -= f2
+        # (dF/dx) w
         if with_w:
+            w0 = w[j, 0] - w[i, 0]
+            w1 = w[j, 1] - w[i, 1]
+            w2 = w[j, 2] - w[i, 2]
+            ka = ks * a
+            kb = ks * (1.0 - a) * (u0 * w0 + u1 * w1 + u2 * w2)
+            q0 = ka * w0 + kb * u0
+            q1 = ka * w1 + kb * u1
+            q2 = ka * w2 + kb * u2
             kw[i, 0] += q0
             kw[i, 1] += q1
             kw[i, 2] += q2
             kw[j, 0] -= q0
             kw[j, 1] -= q1
             kw[j, 2] -= q2
-        # + on (i, i), (j, j); - on (i, j), (j, i)
+        # C = alpha I + beta u u^T (exactly symmetric): + on (i, i), (j, j); - on (i, j), (j, i)
+        alpha = c_x * ks * a
+        beta = c_x * ks * (1.0 - a) + c_v * kd[s]
+        b0 = beta * u0
+        b1 = beta * u1
+        c00 = b0 * u0 + alpha
+        c01 = b0 * u1
+        c02 = b0 * u2
+        c11 = b1 * u1 + alpha
+        c12 = b1 * u2
+        c22 = beta * u2 * u2 + alpha
         _add_sym(B, bidx[s, 0], 1.0, c00, c01, c02, c11, c12, c22)
         _add_sym(B, bidx[s, 1], 1.0, c00, c01, c02, c11, c12, c22)
         _add_sym(B, bidx[s, 2], -1.0, c00, c01, c02, c11, c12, c22)
         _add_sym(B, bidx[s, 3], -1.0, c00, c01, c02, c11, c12, c22)
-
-
-@njit(cache=True, parallel=True)
-def pspring_terms(x, v, w, with_w, damped, si, sj, k, kd, L0, tiny, c_x, c_v, T):
-    """:func:`springs_linearize`'s per-spring numbers on threads, into ``T`` (S, 12): the force on ``i``, its
-    ``(dF/dx) w`` and the block's upper triangle (:func:`_spring_terms`); :func:`pspring_gather` adds them."""
-    for s in prange(si.shape[0]):
-        t = _spring_terms(x, v, w, with_w, damped, si[s], sj[s], k[s], kd[s], L0[s], tiny, c_x, c_v)
-        for m in range(12):
-            T[s, m] = t[m]
-
-
-@njit(cache=True, parallel=True)
-def pspring_gather(T, with_w, vptr, vsp, bptr, bsp, blist, blocks, kw, f):
-    """Add the springs' numbers ``T`` (:func:`pspring_terms`) on threads, gathered where
-    :func:`springs_linearize` scatters them: vertex ``i`` takes its springs ``vsp[vptr[i]:vptr[i+1]]`` (``2 s`` for
-    spring ``s`` with ``i`` first, ``2 s + 1`` second; ascending), block ``blist[r]`` its entries
-    ``bsp[bptr[r]:bptr[r+1]]`` (``2 s`` +C, ``2 s + 1`` -C; ascending). Every vertex and block receives the
-    same additions in the same order as the serial scatter: the same numbers to the last bit, at any thread
-    count."""
-    for i in prange(vptr.shape[0] - 1):
-        a0 = f[i, 0]
-        a1 = f[i, 1]
-        a2 = f[i, 2]
-        for p in range(vptr[i], vptr[i + 1]):
-            s = vsp[p] >> 1
-            if vsp[p] & 1:
-                a0 -= T[s, 0]
-                a1 -= T[s, 1]
-                a2 -= T[s, 2]
-            else:
-                a0 += T[s, 0]
-                a1 += T[s, 1]
-                a2 += T[s, 2]
-        f[i, 0] = a0
-        f[i, 1] = a1
-        f[i, 2] = a2
-        if with_w:
-            a0 = kw[i, 0]
-            a1 = kw[i, 1]
-            a2 = kw[i, 2]
-            for p in range(vptr[i], vptr[i + 1]):
-                s = vsp[p] >> 1
-                if vsp[p] & 1:
-                    a0 -= T[s, 3]
-                    a1 -= T[s, 4]
-                    a2 -= T[s, 5]
-                else:
-                    a0 += T[s, 3]
-                    a1 += T[s, 4]
-                    a2 += T[s, 5]
-            kw[i, 0] = a0
-            kw[i, 1] = a1
-            kw[i, 2] = a2
-    B = blocks.reshape(-1)
-    for r in prange(blist.shape[0]):
-        b = blist[r]
-        for p in range(bptr[r], bptr[r + 1]):
-            s = bsp[p] >> 1
-            _add_sym(B, b, -1.0 if bsp[p] & 1 else 1.0, T[s, 6], T[s, 7], T[s, 8], T[s, 9], T[s, 10], T[s, 11])
-
-
-def gather_lists(si, sj, bidx) -> tuple:
-    """The lists of :func:`pspring_gather` for springs ``si``, ``sj`` with block positions ``bidx`` (S, 4)."""
-    import numpy as np
-
-    S = len(si)
-    n = int(max(si.max(), sj.max())) + 1 if S else 0
-    code = np.arange(2 * S, dtype=np.int64)                    # 2 s: first vertex / +C; 2 s + 1: second / -C
-    vert = np.empty(2 * S, dtype=np.int64)
-    vert[0::2], vert[1::2] = si, sj
-    order = np.argsort(vert, kind="stable")                    # by vertex, then spring (ascending)
-    vptr = np.concatenate([[0], np.cumsum(np.bincount(vert, minlength=n))]).astype(np.int64)
-    vsp = code[order]
-    blk = np.asarray(bidx, dtype=np.int64).reshape(-1)         # s-major: (i, i), (j, j), (i, j), (j, i)
-    bcode = 2 * np.repeat(np.arange(S, dtype=np.int64), 4) + np.tile(np.array([0, 0, 1, 1]), S)
-    order = np.argsort(blk, kind="stable")
-    blk, bcode = blk[order], bcode[order]
-    cut = np.flatnonzero(np.r_[True, blk[1:] != blk[:-1]]) if len(blk) else np.zeros(0, dtype=np.int64)
-    bptr = np.concatenate([cut, [len(blk)]]).astype(np.int64)
-    return vptr, vsp, bptr, bcode, blk[cut].astype(np.int64)
 
 
 @njit(cache=True)

@@ -36,7 +36,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from ..assembly import SystemMatrix, accumulate_product
-from ..backend import Backend, BackendMismatch, get_backend, set_numba_threads, threads
+from ..backend import Backend, BackendMismatch, get_backend, threads
 from .blocks import block_diagonal_operator, inv3
 from .pcg import Filter, SolveResult
 
@@ -633,6 +633,14 @@ class PackedHierarchy(NamedTuple):
     pbb: np.ndarray       #: each chunk's incoming column blocks (local to the level), ascending
 
 
+def _set_numba_threads() -> None:
+    """Let numba's parallel regions use :func:`implicit_cloth.backend.threads` threads (at most its pool)."""
+    from numba import config, set_num_threads
+
+    pool = int(config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
+    set_num_threads(max(1, min(threads(), pool)))
+
+
 class _FusedHierarchy:
     """The hierarchy packed into flat arrays for the compiled kernels (:mod:`implicit_cloth.kernels.pcg`), and
     their drivers.
@@ -757,7 +765,7 @@ class _FusedHierarchy:
         flat = fine.blocks.reshape(-1)
         par = fine.n >= THREAD_MIN_VERTICES and threads() > 1       # the copies on threads: the same numbers
         if par or mg.smoothed:
-            set_numba_threads()
+            _set_numba_threads()
         gather = _fused.pgather_blocks if par else _fused.gather_blocks
         gather(flat, fine.diag_index, self.adg.reshape(-1))
         gather(flat, self._uidx[0], self.auv.reshape(-1))
@@ -860,7 +868,7 @@ class _FusedHierarchy:
         C, upper = self._coarse()
         threaded = threads() > 1
         if threaded:
-            set_numba_threads()
+            _set_numba_threads()
         return PackedHierarchy(self.dg, self.uI, self.uJ, self.uv, self.vu6, self.use6, self.voff, self.uoff,
                                self.clist, self.Sc, self.ws, self.dinv, self.pptr, self.pidx, self.pval, self.poff,
                                self.pnnz, self.tptr, self.tidx, self.tval, self.toff, C, upper, self.mg.omega,
