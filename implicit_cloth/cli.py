@@ -60,6 +60,7 @@ from . import __version__
 from .errors import DivergenceError, InputError
 from .files import write_run
 from .integrators import INTEGRATORS
+from .integrators.base import NEWTON_FORCING
 from .report import RunReport
 from .scene import load_scene
 from .simulator import Simulator, Trajectory
@@ -263,7 +264,9 @@ def _section_lines(r: RunReport) -> list[str]:
         lines.append(
             f"solver       {s.preconditioner} PCG ({s.accelerator}), iterations mean {s.mean_iterations:.1f} / "
             f"max {s.max_iterations}, tolerance {s.tolerance:g} on the error of dv (max relative residual "
-            f"{s.max_residual:.3g}), unconverged steps {s.unconverged_steps}"
+            f"{s.max_residual:.3g}" + (f", Newton corrections included: those are solved to {NEWTON_FORCING:g}"
+                                       if s.max_newton_iterations > 1 else "")
+            + f"), unconverged steps {s.unconverged_steps}"
             + (f"; every attempt: {s.mean_attempted_solves:.2f} solves and {s.mean_attempted_iterations:.1f} "
                f"iterations a step" if s.mean_attempted_solves is not None
                and s.mean_attempted_solves > s.mean_solves else ""))

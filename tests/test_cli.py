@@ -228,3 +228,20 @@ def test_outputs_get_a_normal_file_mode(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~mask
+
+
+def test_solver_line_says_newton_corrections_are_solved_looser(tmp_path, capsys):
+    """The largest residual comes from Newton corrections solved to NEWTON_FORCING where a step took any: the
+    summary says so instead of putting it bare next to the step tolerance."""
+    from implicit_cloth.integrators.base import NEWTON_FORCING
+
+    lines = {}
+    for newton in (1, 4):
+        scene = write(tmp_path, SMALL + f'\n[solver]\nnewton_iterations = {newton}\n', f"n{newton}.toml")
+        assert run(str(scene), "--out", str(tmp_path / f"o{newton}"), "--no-progress") == 0
+        report = json.loads((tmp_path / f"o{newton}" / "report.json").read_text())
+        out = capsys.readouterr().out
+        lines[newton] = next(line for line in out.splitlines() if line.startswith("solver "))
+        assert (report["solver"]["max_newton_iterations"] > 1) == (newton > 1)
+    assert f"Newton corrections included: those are solved to {NEWTON_FORCING:g}" in lines[4]
+    assert "Newton" not in lines[1]
