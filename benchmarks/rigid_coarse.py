@@ -195,7 +195,7 @@ def markdown(res: dict) -> str:
              "fine-matrix passes of the solve; in brackets the coarse matrices' entries over the fine one's and the "
              "set-up's Galerkin products in multiplications over the fine matrix's entries (every solve).", ""]
     lines += system_table(res["rows"], systems, "lever", LEVERS, lambda r: f"{r['iterations']} / {r['true_error']:.0e}"
-                          f" / {r['passes']:.0f} ({r['coarse_share']:.2f}, {r.get('galerkin_work', float('nan')):.0f})")
+                          f" / {r['passes']:.0f} ({r['coarse_share']:.2f}, {r['galerkin_work']:.0f})")
     return "\n".join(lines) + "\n"
 
 

@@ -261,15 +261,15 @@ def _section_lines(r: RunReport) -> list[str]:
     lines = []
     s = r.solver
     if s:
+        newton = (f", Newton corrections included: those are solved to {NEWTON_FORCING:g}"
+                  if s.max_newton_iterations > 1 else "")
+        attempts = (f"; every attempt: {s.mean_attempted_solves:.2f} solves and {s.mean_attempted_iterations:.1f} "
+                    f"iterations a step" if s.mean_attempted_solves is not None
+                    and s.mean_attempted_solves > s.mean_solves else "")
         lines.append(
             f"solver       {s.preconditioner} PCG ({s.accelerator}), iterations mean {s.mean_iterations:.1f} / "
             f"max {s.max_iterations}, tolerance {s.tolerance:g} on the error of dv (max relative residual "
-            f"{s.max_residual:.3g}" + (f", Newton corrections included: those are solved to {NEWTON_FORCING:g}"
-                                       if s.max_newton_iterations > 1 else "")
-            + f"), unconverged steps {s.unconverged_steps}"
-            + (f"; every attempt: {s.mean_attempted_solves:.2f} solves and {s.mean_attempted_iterations:.1f} "
-               f"iterations a step" if s.mean_attempted_solves is not None
-               and s.mean_attempted_solves > s.mean_solves else ""))
+            f"{s.max_residual:.3g}{newton}), unconverged steps {s.unconverged_steps}{attempts}")
     a = r.adaptive
     if a:
         lines.append(f"adaptive     {a.substeps} substeps, {a.retries} retries (halved), {a.newton_retries} redone "
