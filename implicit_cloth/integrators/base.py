@@ -284,15 +284,83 @@ class ImplicitIntegrator(Integrator):
         if nonlinear:
             info.friction_converged = bool(c.friction_error(v1) <= FRICTION_TOLERANCE)
             if iters > 1 and not info.friction_converged and np.all(np.isfinite(dv)):
-                # Newton iterations where the solve left the friction off its law; kept only if they meet it
-                # (while the cloth folds they may not: the springs' projected Newton stalls there), else the
-                # step is this first solve's, for the caller's state rules
-                linear = (v1, info.constraint_impulse, info.balance, info.newton_iterations)
-                out, info = self._newton(state, h, c, scheme, v1.copy(), filt, iters - 1, info)
-                if info.friction_converged:
-                    return out, info
-                v1, info.constraint_impulse, info.balance, info.newton_iterations = linear
+                # Newton iterations on the friction alone where the solve left it off its law, the springs at
+                # the step's linearisation; kept only if they meet the law, else the step is this first solve's,
+                # for the caller's state rules
+                met = self._friction_newton(state, h, c, scheme, filt, dv, iters - 1, info)
+                info.friction_converged = met is not None
+                if met is not None:
+                    dv, c_met, newton_its = met
+                    v1 = v + dv
+                    x1 = scheme.x_pred + scheme.beta * v1
+                    _, A, b = self._system(state, h, c_met, info)    # the law's linearisation at v1: exact there
+                    info.constraint_impulse = (A @ dv.reshape(-1) - b.reshape(-1)).reshape(-1, 3) * (h / scheme.c_v)
+                    info.balance = self._balance(scheme, c, x1, v1, state.t + h)
+                    info.newton_iterations += newton_its
         return self._finish(x1, v1, state.t + h), info
+
+    def _friction_newton(self, state: State, h: float, c: Constraints, scheme: Scheme, filt: Filter,
+                         dv: np.ndarray, iterations: int,
+                         info: StepInfo) -> tuple[np.ndarray, Constraints, int] | None:
+        """Continue a step whose smoothed friction (``c.rub``) the first solve ``dv`` left off its law by Newton
+        iterations on the friction alone: the springs and the other forces stay linearised at the step's start
+        (Baraff & Witkin's single linearisation, the matrix ``A0`` and right-hand side ``b0`` of the first
+        solve without the friction), the friction is the law itself. That is the minimum of the convex
+
+            Phi(dv) = dv^T A0 dv / 2 - b0^T dv + c_v sum mu N f(|v_t(v0 + dv)|)
+
+        (``f`` Huber's, :meth:`Constraints.friction_potential`) over the velocities the constraints allow.
+        Each iteration linearises the friction exactly at the iterate (:meth:`Constraints.relinearized`), solves
+        ``(A0 + c_v D_k) d = -grad Phi`` (the same filtered PCG, to :data:`NEWTON_FORCING`) and steps to the least
+        ``Phi`` along ``d`` on ``0 < a <= 1`` (:func:`_segment_root`; ``Phi`` is convex, so every iteration
+        lowers it). Stops when the friction's linearisation holds at the iterate (:data:`FRICTION_TOLERANCE`)
+        or the correction is below that fraction of the sliding speed; gives up (None) after ``iterations``,
+        or once the friction's error stops contracting (:data:`FRICTION_CONTRACTION`).
+
+        Why the springs stay linearised: iterating them too (:meth:`_newton`, the continuation until
+        2026-12-06) stalls while the cloth folds (the compressed springs' clamped Hessian: corrections of
+        2-6 cm/s not shrinking), so most continuations missed the law and were thrown away (the shared 64²
+        drape over 2 s: 163 of 231, half the run's solves). What the linearisation leaves in the springs is the
+        same as in a step without contacts: the collider's balance-driven refinement and adaptive stepping's
+        energy balance see it (``collision.newton_iterations``, :class:`~implicit_cloth.adaptive.StepController`).
+
+        Returns the velocity change, the constraints with the friction linearised at its end and the
+        iterations taken; None when the law was not met.
+        """
+        cv = scheme.c_v
+        v0 = state.v
+        M = self.model.masses[:, None]
+        floor = FRICTION_TOLERANCE * c.slide_speed * np.sqrt(float(np.sum(M)))
+        last_err: float | None = None
+        for k in range(iterations):
+            v = v0 + dv
+            ck = c.relinearized(v)
+            _, A, b = self._system(state, h, ck, info)
+            r = A @ dv.reshape(-1) - b.reshape(-1)      # grad Phi at dv: the linearisation is exact at v
+            d = self._solve(A, -r.reshape(-1, 3), np.zeros_like(v), filt, info,
+                            tolerance=max(self.tolerance, NEWTON_FORCING))
+            slope = float(np.dot(filt.apply(r), d.reshape(-1)))
+            if not np.isfinite(slope) or slope >= 0.0:
+                return None
+            dc = d[c.contact]
+            # d^T A0 d: the system holds c_v D_k beside A0
+            dAd = float(np.dot(d.reshape(-1), A @ d.reshape(-1))) \
+                - cv * float(np.einsum("kij,ki,kj->", ck.damping, dc, dc))
+            lin = slope + cv * float(np.einsum("ij,ij->", c.friction_force(v), dc))
+
+            def g(a: float) -> float:        # d Phi(dv + a d) / da
+                return lin + a * dAd - cv * float(np.einsum("ij,ij->", c.friction_force(v + a * d), dc))
+
+            a = _segment_root(g, slope)
+            dv = dv + a * d
+            step = a * np.sqrt(float(np.einsum("ij,ij->", M * d, d)))
+            err = ck.friction_error(v0 + dv)
+            if step <= floor or err <= FRICTION_TOLERANCE:
+                return dv, c.relinearized(v0 + dv), k + 1
+            if last_err is not None and err > FRICTION_CONTRACTION * last_err:
+                return None
+            last_err = err
+        return None
 
     def _balance(self, scheme: Scheme, c: Constraints, x1: np.ndarray, v1: np.ndarray, t1: float) -> float:
         """:attr:`StepInfo.balance` of the end state ``x1``, ``v1`` (one force evaluation)."""
@@ -451,27 +519,7 @@ class ImplicitIntegrator(Integrator):
             fr = c.friction_force(v + a * d)
             return lin + a * quad - cv * (float(np.einsum("ij,ij->", fc, d))
                                           + float(np.einsum("ij,ij->", fr, d[c.contact])))
-        lo, g_lo, hi, g_hi = 0.0, slope, 1.0, g(1.0)
-        if not np.isfinite(g_hi) or g_hi <= 0.0:
-            return 1.0
-        side = 0
-        a = hi
-        for _ in range(LINE_ITERATIONS):
-            a = (lo * g_hi - hi * g_lo) / (g_hi - g_lo)
-            ga = g(a)
-            if abs(ga) <= LINE_TOLERANCE * abs(slope):
-                break
-            if ga > 0:
-                hi, g_hi = a, ga
-                if side == -1:
-                    g_lo *= 0.5
-                side = -1
-            else:
-                lo, g_lo = a, ga
-                if side == 1:
-                    g_hi *= 0.5
-                side = 1
-        return a
+        return _segment_root(g, slope)
 
     def _solve(self, A, b: np.ndarray, z: np.ndarray, filt: Filter, info: StepInfo,
                guess: np.ndarray | None = None, tolerance: float | None = None) -> np.ndarray:
@@ -491,3 +539,30 @@ class ImplicitIntegrator(Integrator):
         info.converged = info.converged and res.converged
         info.solves += 1
         return dv.reshape(-1, 3)
+
+
+def _segment_root(g: Any, slope: float) -> float:
+    """Where a convex function of ``a`` with derivative ``g`` (``g(0) = slope < 0``) is least on ``0 < a <= 1``:
+    1 when ``g(1) <= 0``, else the root of ``g`` by regula falsi (Illinois), to :data:`LINE_TOLERANCE` of the
+    slope, in at most :data:`LINE_ITERATIONS` evaluations."""
+    lo, g_lo, hi, g_hi = 0.0, slope, 1.0, g(1.0)
+    if not np.isfinite(g_hi) or g_hi <= 0.0:
+        return 1.0
+    side = 0
+    a = hi
+    for _ in range(LINE_ITERATIONS):
+        a = (lo * g_hi - hi * g_lo) / (g_hi - g_lo)
+        ga = g(a)
+        if abs(ga) <= LINE_TOLERANCE * abs(slope):
+            break
+        if ga > 0:
+            hi, g_hi = a, ga
+            if side == -1:
+                g_lo *= 0.5
+            side = -1
+        else:
+            lo, g_lo = a, ga
+            if side == 1:
+                g_hi *= 0.5
+            side = 1
+    return a
