@@ -80,6 +80,10 @@ class Constraints:
         :meth:`relinearized` moves it (:meth:`friction_force`, :meth:`friction_potential`: the law itself).
     slide_speed : float
         Its sliding speed ``eps``, m/s (``collision.friction_speed``).
+    pending : (K,) array
+        With ``rub``: the friction coefficient ``mu`` of each contact whose bound waits for this step's first
+        solve (a new contact, no normal force yet: its bound becomes ``mu`` times that solve's normal force before
+        the friction's Newton iterations), 0 for the others; empty when none waits.
     """
 
     pinned: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
@@ -93,6 +97,7 @@ class Constraints:
     damping: np.ndarray = field(default_factory=lambda: _empty(3, 3))
     rub: np.ndarray = field(default_factory=lambda: np.zeros(0))
     slide_speed: float = 0.0
+    pending: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @classmethod
     def of_pins(cls, model) -> "Constraints":
@@ -102,16 +107,17 @@ class Constraints:
     def with_contacts(self, idx: np.ndarray, normal: np.ndarray, offset: np.ndarray, velocity: np.ndarray,
                       stick: np.ndarray | None = None, friction: np.ndarray | None = None,
                       damping: np.ndarray | None = None, rub: np.ndarray | None = None,
-                      slide_speed: float = 0.0) -> "Constraints":
+                      slide_speed: float = 0.0, pending: np.ndarray | None = None) -> "Constraints":
         """These pins with the given contacts (replacing any contacts); by default frictionless."""
         idx = np.asarray(idx, dtype=np.int64)
         st = np.zeros(len(idx), dtype=bool) if stick is None else np.asarray(stick, dtype=bool)
         fr = np.zeros((len(idx), 3)) if friction is None else np.asarray(friction, dtype=float)
         dm = _empty(3, 3) if damping is None else np.asarray(damping, dtype=float)
         rb = np.zeros(0) if rub is None else np.asarray(rub, dtype=float)
+        pd = np.zeros(0) if pending is None or not np.any(pending) else np.asarray(pending, dtype=float)
         return Constraints(self.pinned, self.pin_velocity, idx, np.asarray(normal, dtype=float),
                            np.asarray(offset, dtype=float), np.asarray(velocity, dtype=float), st, fr, dm, rb,
-                           float(slide_speed))
+                           float(slide_speed), pd)
 
     def with_pins(self, idx: np.ndarray, velocity: np.ndarray) -> "Constraints":
         """These constraints with vertices ``idx`` (not pinned already, in no contact) also prescribed to end the
@@ -186,6 +192,16 @@ class Constraints:
         t = np.where((s <= self.slide_speed)[:, None], 0.0, vt / np.maximum(s, 1e-300)[:, None])
         force, D = huber_linearization(self.rub, self.normal, t, s, self.slide_speed)
         return replace(self, friction=force, damping=D)
+
+    def with_pending_bounds(self, impulse: np.ndarray, h: float) -> "Constraints":
+        """These constraints with the waiting contacts' friction bounds (``pending``) set from a solve's
+        constraint ``impulse`` (N, 3), N*s, over the step ``h``: ``mu max(J . n, 0) / h``; unchanged when none
+        waits."""
+        if not len(self.pending):
+            return self
+        jn = np.einsum("ij,ij->i", impulse[self.contact], self.normal) / h
+        rub = np.where(self.pending > 0.0, self.pending * np.maximum(jn, 0.0), self.rub)
+        return replace(self, rub=rub, pending=np.zeros(0))
 
     def damping_force(self, v: np.ndarray) -> np.ndarray:
         """The contacts' friction damping force at the cloth velocities ``v`` (N, 3): ``-damping (v - u)``,

@@ -208,6 +208,10 @@ class Collider:
                     # later rounds still try: skipping those too left a 32² drape at dt 1/30 sliding at mm/s)
                     self._friction_pause = self.ctx.friction_pause
                 step_missed = step_missed or missed
+            if si.friction_converged and len(cons.pending):
+                # the new contacts' friction was solved in this step at its first solve's normal forces: no
+                # second solve for it
+                switched[cons.contact[cons.pending > 0.0]] = True
             balance = si.balance
             info.rounds = rnd + 1
             if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
@@ -415,8 +419,11 @@ class Collider:
         if self.ctx.smooth > 0:    # every contact held along its normal only, its friction a force of the solve
             mu = self._mu[active.ob]
             fr, damping = friction.smooth_model(active, mu, n, self.ctx.smooth)
-            rub = mu * np.maximum(active.force, 0.0) if self.ctx.friction_newton else None
+            rub = pending = None
+            if self.ctx.friction_newton:
+                rub = mu * np.maximum(active.force, 0.0)
+                pending = np.where(active.force == 0.0, mu, 0.0)     # new contacts: bound from the first solve
             return pins.with_contacts(active.idx, n, offset, u, friction=fr, damping=damping, rub=rub,
-                                      slide_speed=self.ctx.smooth)
+                                      slide_speed=self.ctx.smooth, pending=pending)
         stick, fr = friction.friction_forces(active, self._mu[active.ob])
         return pins.with_contacts(active.idx, n, offset, u, stick, fr)

@@ -281,6 +281,8 @@ class ImplicitIntegrator(Integrator):
         if c.n_contacts:   # A dv - b = c_v F_c: the constraint force F_c over the step h is the impulse
             info.constraint_impulse = (A @ dv.reshape(-1) - b.reshape(-1)).reshape(-1, 3) * (h / scheme.c_v)
             info.balance = self._balance(scheme, c, x1, v1, state.t + h)
+        if nonlinear and len(c.pending) and iters > 1 and info.constraint_impulse is not None:
+            c = c.with_pending_bounds(info.constraint_impulse, h)  # new contacts: friction at this solve's force
         if nonlinear:
             info.friction_converged = bool(c.friction_error(v1) <= FRICTION_TOLERANCE)
             if iters > 1 and not info.friction_converged and np.all(np.isfinite(dv)):
