@@ -266,3 +266,39 @@ def test_the_friction_continuation_is_the_least_of_the_steps_model_with_the_fric
         assert err < 0.05, err          # of what the iterations moved the first solve (measured 0.4-1.3 %)
         assert np.allclose(dv - np.einsum("nij,nj->ni", S, dv), z, atol=1e-12)   # constraints exact
         assert phi(SS @ dv.reshape(-1))[0] <= phi(SS @ dv_first.reshape(-1))[0]
+
+
+def test_a_new_contacts_friction_is_solved_in_the_step_that_finds_it():
+    """A flat cloth sliding at 1 m/s lands on a floor: the landing step finds the contacts after its first
+    solve, and their friction (no normal force before: none in that solve) is solved in the same round at the
+    normal force of the round's first solve, not in a third round. The cloth's speed after the step is the
+    inelastic impact's Coulomb closed form, ``vx0 - mu (vz1 - vz0 + g h)`` with ``vz1 = (TH - z0) / h`` (the
+    contact's end on its plane, which the solve's normal impulse brings), the rounds two."""
+    from implicit_cloth.collision import collider as col
+
+    mu, h, g, vx0, vz0, z0 = 0.3, 1 / 60, 9.81, 1.0, -0.6, TH + 0.004
+    floor = {"shape": "plane", "point": [0, 0, 0], "normal": [0, 0, 1]}
+    sc = cloth_scene(floor, dt=h, duration=0.1, res=8, size=0.3, center=(0, 0, z0), friction=mu,
+                     collision=dict(NEWTON))
+    sc["effects"].pop("drag")
+    sim = ic.Simulator(sc, adaptive={"enabled": False})
+    sim.state.v[:] = (vx0, 0.0, vz0)
+    rounds: list[int] = []
+    real = col.Collider._solve_rounds
+
+    def spy(self, *a, **k):
+        out = real(self, *a, **k)
+        rounds.append(out[2].rounds)
+        return out
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(col.Collider, "_solve_rounds", spy)
+    try:
+        sim.step(1)
+    finally:
+        mp.undo()
+    assert rounds == [2]
+    vz1 = (TH - z0) / h
+    assert np.allclose(sim.positions[:, 2], TH, atol=1e-12)
+    assert np.allclose(sim.velocities[:, 2], 0.0, atol=1e-12)     # the contacts then leave inelastically
+    assert sim.velocities[:, 0] == pytest.approx(np.full(sim.model.n, vx0 - mu * (vz1 - vz0 + g * h)), rel=1e-6)

@@ -199,7 +199,9 @@ def newton_update(active: Planes, cons: Constraints, J: np.ndarray | None, v: np
     impulse, and the tangential speeds and directions their next step's first solve is linearised at
     (held below ``eps``). No state rules: the solve's Newton iterations found the friction at these normal
     forces. Returns the contacts that had no normal force before and have friction now (their step is solved
-    again once with it: ``switched``, updated in place)."""
+    again once with it: ``switched``, updated in place), but for those whose friction the step's own Newton
+    iterations already solved at the first solve's normal force (:attr:`Constraints.pending`; the collider
+    marks them ``switched`` first)."""
     if J is None or not cons.n_contacts:
         return np.zeros(len(active), dtype=bool)
     jn = np.einsum("ij,ij->i", J[active.idx], cons.normal)

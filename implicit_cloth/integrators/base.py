@@ -35,8 +35,9 @@ NEWTON_TOLERANCE = 1e-2
 FRICTION_TOLERANCE = 0.01
 #: Such a step's Newton iterations stop, unconverged, at the first iterate (after the first) whose friction error
 #: is more than this fraction of the one before: they are not contracting, and the caller keeps the step's first
-#: solve, as it does after ``friction_newton`` iterations that miss the law. On the shared 32² drape 173 of 326
-#: continuations missed the law after up to 6 iterations (713 solves, half the run's, thrown away).
+#: solve, as it does after ``friction_newton`` iterations that miss the law. (When the continuation iterated the
+#: springs too, before 2026-12-06, 173 of the shared 32² drape's 326 continuations missed the law after up to 6
+#: iterations: 713 solves, half the run's, thrown away; see :meth:`ImplicitIntegrator._friction_newton`.)
 FRICTION_CONTRACTION = 0.5
 #: The line search of such a step: at most this many force evaluations for the least potential along the
 #: Newton direction, stopping when its slope is this fraction of the slope at the start.
