@@ -211,9 +211,6 @@ def test_the_friction_continuation_is_the_least_of_the_steps_model_with_the_fric
     minimiser of ``dv^T A0 dv / 2 - b0^T dv + h sum mu N f(|v_t|)`` (Huber's ``f``) over the velocities the
     constraints allow. Checked on continuations of a 16² drape landing on a sphere against scipy's L-BFGS on
     that function, with the constrained components exactly the first solve's and the function lowered."""
-    import scipy.sparse as sp
-    from scipy.optimize import minimize
-
     from implicit_cloth.integrators import base
 
     sc = cloth_scene({"shape": "sphere", "radius": 0.2, "center": [0.0, 0.0, -0.2]}, dt=1 / 60, duration=1.0,
@@ -241,31 +238,39 @@ def test_the_friction_continuation_is_the_least_of_the_steps_model_with_the_fric
         mp.undo()
     assert len(seen) == 3
     for state, scheme, c, A, held, S, dv_first, dv in seen:
-        n = len(state.v)
-        blocks = np.zeros((n, 3, 3))
-        blocks[held[0]] = held[1]
-        A0 = (A - sp.block_diag(list(blocks), format="csr")).tocsr()   # the first solve's friction damping out
-        b0 = scheme.b.reshape(-1)
-        cv = scheme.c_v
-        z = dv_first - np.einsum("nij,nj->ni", S, dv_first)   # the constrained components
-        SS = sp.block_diag(list(S), format="csr")
+        _check_least(sim.model.masses, state, scheme, c, A, held, S, dv_first, dv)
 
-        def phi(y):
-            d = z.reshape(-1) + SS @ y
-            v = state.v + d.reshape(-1, 3)
-            f = np.zeros((n, 3))
-            f[c.contact] = c.friction_force(v)
-            grad = A0 @ d - b0 - cv * f.reshape(-1)
-            return 0.5 * d @ (A0 @ d) - b0 @ d + cv * c.friction_potential(v), SS @ grad
 
-        best = minimize(phi, (SS @ dv_first.reshape(-1)), jac=True, method="L-BFGS-B",
-                        options={"gtol": 1e-13, "ftol": 1e-16, "maxiter": 20000, "maxcor": 20})
-        star = z + (SS @ best.x).reshape(-1, 3)
-        m = sim.model.masses[:, None]
-        err = np.sqrt(np.sum(m * (dv - star) ** 2) / np.sum(m * (star - dv_first) ** 2))
-        assert err < 0.05, err          # of what the iterations moved the first solve (measured 0.4-1.3 %)
-        assert np.allclose(dv - np.einsum("nij,nj->ni", S, dv), z, atol=1e-12)   # constraints exact
-        assert phi(SS @ dv.reshape(-1))[0] <= phi(SS @ dv_first.reshape(-1))[0]
+def _check_least(masses, state, scheme, c, A, held, S, dv_first, dv) -> None:
+    """``dv`` against scipy's minimiser of the step's function (constraints from the first solve)."""
+    import scipy.sparse as sp
+    from scipy.optimize import minimize
+
+    n = len(state.v)
+    blocks = np.zeros((n, 3, 3))
+    blocks[held[0]] = held[1]
+    A0 = (A - sp.block_diag(list(blocks), format="csr")).tocsr()   # the first solve's friction damping out
+    b0 = scheme.b.reshape(-1)
+    cv = scheme.c_v
+    z = dv_first - np.einsum("nij,nj->ni", S, dv_first)   # the constrained components
+    SS = sp.block_diag(list(S), format="csr")
+
+    def phi(y):
+        d = z.reshape(-1) + SS @ y
+        v = state.v + d.reshape(-1, 3)
+        f = np.zeros((n, 3))
+        f[c.contact] = c.friction_force(v)
+        grad = A0 @ d - b0 - cv * f.reshape(-1)
+        return 0.5 * d @ (A0 @ d) - b0 @ d + cv * c.friction_potential(v), SS @ grad
+
+    best = minimize(phi, (SS @ dv_first.reshape(-1)), jac=True, method="L-BFGS-B",
+                    options={"gtol": 1e-13, "ftol": 1e-16, "maxiter": 20000, "maxcor": 20})
+    star = z + (SS @ best.x).reshape(-1, 3)
+    m = masses[:, None]
+    err = np.sqrt(np.sum(m * (dv - star) ** 2) / np.sum(m * (star - dv_first) ** 2))
+    assert err < 0.05, err          # of what the iterations moved the first solve (measured 0.4-1.3 %)
+    assert np.allclose(dv - np.einsum("nij,nj->ni", S, dv), z, atol=1e-12)   # constraints exact
+    assert phi(SS @ dv.reshape(-1))[0] <= phi(SS @ dv_first.reshape(-1))[0]
 
 
 def test_a_new_contacts_friction_is_solved_in_the_step_that_finds_it():

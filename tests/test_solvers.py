@@ -553,3 +553,33 @@ def test_a_simulator_pickled_mid_run_goes_on_exactly_as_the_original(monkeypatch
     assert copy.last_step.converged
     assert np.array_equal(copy.positions, sim.positions)
     assert copy.last_step.iterations == sim.last_step.iterations
+
+
+@pytest.mark.parametrize("preconditioner", ["multigrid", "multigrid_smoothed"])
+@pytest.mark.parametrize("accelerator", ACCELERATORS)
+@pytest.mark.parametrize("tol", [1e-1, 1e-3])
+def test_a_diagonal_refresh_still_solves_within_tolerance(preconditioner, accelerator, tol):
+    """``Multigrid.refresh_diagonal`` (the friction's Newton corrections: only contacts' diagonal blocks change
+    between solves) re-reads the fine diagonal and its smoother and keeps the coarse levels: an SPD
+    preconditioner of the changed matrix, so the solve is within tolerance of the direct one and the
+    constrained components exact, with damping blocks from 1e-3 to 1e3 times a vertex's mass added after the
+    setup (the numpy back-end sets up again)."""
+    sim = ic.Simulator(_scene(), dt=H)
+    m, _, b = _system(sim)
+    z, filt, partial = _constraints(m, b, seed=2)
+    pc = make_preconditioner(preconditioner, m, accelerator)
+    pc.setup(m.system, filt)
+    rng = np.random.default_rng(3)
+    idx = rng.choice(np.setdiff1d(np.arange(m.n), np.concatenate([m.pinned, partial])), 60, replace=False)
+    t = rng.standard_normal((60, 3))
+    t /= np.linalg.norm(t, axis=1)[:, None]
+    scale = m.masses[idx] * 10.0 ** rng.uniform(-3, 3, 60)
+    D = scale[:, None, None] * (np.eye(3)[None] - t[:, :, None] * t[:, None, :])   # tangential, PSD
+    sysm = m.system
+    before = sysm.csr.copy()
+    np.add.at(sysm.blocks, sysm.diag_index[idx], D)
+    sysm.finalize_lazy()
+    pc.refresh_diagonal(sysm, filt)
+    A = sysm.csr
+    assert abs(A - before).sum() > 0
+    _check_against_direct(m, A, b, z, filt, partial, pc, tol)

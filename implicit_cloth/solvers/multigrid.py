@@ -307,6 +307,15 @@ class Multigrid:
         C = self.engine.setup(filt)
         self._chol, self.coarse_shift = coarse_cholesky(C)
 
+    def refresh_diagonal(self, system: SystemMatrix | None, filt: Filter) -> None:
+        """After a change of the fine system's diagonal blocks only, with the filter of the last setup: the
+        fine level's copy and smoother follow, the coarse levels stay (an SPD preconditioner still, for the
+        slightly different matrix). Falls back to :meth:`setup` where the engine has no such refresh."""
+        if isinstance(self.engine, _FusedHierarchy) and self.engine.filt is filt:
+            self.engine.refresh_diagonal()
+        else:
+            self.setup(system, filt)
+
     def apply(self, r: np.ndarray) -> np.ndarray:
         """One V-cycle: an approximation of ``(S A S + I - S)^-1 r``."""
         return self.engine.apply(r)
@@ -831,6 +840,21 @@ class _FusedHierarchy:
             _smoothed.ptranspose_blocks(self.pval, self._tperm, self.tval)
         mg._A = [None] * (L + 1)
         return self.coarse_dense()
+
+    def refresh_diagonal(self) -> None:
+        """The fine level's diagonal blocks and their smoother inverses from the fine system's current values
+        (its off-diagonal blocks and the filter unchanged since :meth:`setup`); the coarse levels kept."""
+        fine = self.mg.fine
+        from ..kernels import pcg as _fused
+        _fused.gather_blocks(fine.blocks.reshape(-1), fine.diag_index, self.adg.reshape(-1))
+        if self.precond_dtype != np.float64:
+            self.dg[:fine.n] = self.adg
+        self.version = fine.version
+        c, Sc = self.clist, self.Sc
+        n0 = fine.n
+        _fused.inv3(self.adg.reshape(-1), self.dinv[:n0].reshape(-1))
+        if len(c):
+            self.dinv[c] = inv3(Sc @ self.adg[c] @ Sc + (np.eye(3) - Sc))
 
     def _gal_chunks(self, l: int) -> tuple:
         """Level ``l``'s Galerkin entries cut for threads (:func:`galerkin_chunks`), made on first use."""
