@@ -208,7 +208,7 @@ class Collider:
                     # later rounds still try: skipping those too left a 32² drape at dt 1/30 sliding at mm/s)
                     self._friction_pause = self.ctx.friction_pause
                 step_missed = step_missed or missed
-            if si.friction_converged and len(cons.pending):
+            if si.friction_converged and si.pending_bounds:
                 # the new contacts' friction was solved in this step at its first solve's normal forces: no
                 # second solve for it
                 switched[cons.contact[cons.pending > 0.0]] = True

@@ -76,6 +76,9 @@ class StepInfo:
     #: met its law (True), or the Newton iterations did not get it there and the step is the first solve's
     #: (False); None without it
     friction_converged: bool | None = None
+    #: whether the contacts' pending friction bounds (:attr:`Constraints.pending`: new contacts) were set from the
+    #: step's first solve, so that its friction iterations solved theirs too
+    pending_bounds: bool = False
 
     @property
     def attempted_solves(self) -> int:
@@ -284,6 +287,7 @@ class ImplicitIntegrator(Integrator):
             info.balance = self._balance(scheme, c, x1, v1, state.t + h)
         if nonlinear and len(c.pending) and iters > 1 and info.constraint_impulse is not None:
             c = c.with_pending_bounds(info.constraint_impulse, h)  # new contacts: friction at this solve's force
+            info.pending_bounds = True
         if nonlinear:
             info.friction_converged = bool(c.friction_error(v1) <= FRICTION_TOLERANCE)
             if iters > 1 and not info.friction_converged and np.all(np.isfinite(dv)):
