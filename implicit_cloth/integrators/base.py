@@ -332,7 +332,7 @@ class ImplicitIntegrator(Integrator):
         Why the springs stay linearised: iterating them too (:meth:`_newton`, the continuation until
         2026-12-06) stalls while the cloth folds (the compressed springs' clamped Hessian: corrections of
         2-6 cm/s not shrinking), so most continuations missed the law and were thrown away (the shared 64²
-        drape over 2 s: 163 of 231, half the run's solves). What the linearisation leaves in the springs is the
+        drape over 2 s: 176 of 231, half the run's solves). What the linearisation leaves in the springs is the
         same as in a step without contacts: the collider's balance-driven refinement and adaptive stepping's
         energy balance see it (``collision.newton_iterations``, :class:`~implicit_cloth.adaptive.StepController`).
 
