@@ -124,7 +124,7 @@ def capture(n: int, k: float, steps: list[int]) -> list[dict]:
     want = set(steps)
     cur = {"step": 0}
 
-    def spy(A, b, z, filt, info, guess=None, tolerance=None):
+    def spy(A, b, z, filt, info, guess=None, tolerance=None, **kw):
         if cur["step"] in want:
             A0, b0, z0 = sp.csr_array(A, copy=True), b.reshape(-1).copy(), z.reshape(-1).copy()
             f0 = Filter(filt.n, filt.fixed.copy(), filt.partial.copy(), filt.partial_S.copy())
@@ -132,7 +132,7 @@ def capture(n: int, k: float, steps: list[int]) -> list[dict]:
             _, res = filtered_pcg(A0, b0, z0, f0, lib, integ.tolerance, 5000, mass=mass3, compiled=False)
             out.append({"A": A0, "b": b0, "z": z0, "filt": f0, "x": sim.positions.copy(), "step": cur["step"],
                         "library_iterations": res.iterations})
-        return orig(A, b, z, filt, info, guess, tolerance)
+        return orig(A, b, z, filt, info, guess, tolerance, **kw)
 
     integ._solve = spy
     for s in range(1, max(steps) + 1):

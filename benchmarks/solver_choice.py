@@ -67,11 +67,11 @@ def capture(kind: str, n: int, step: int, fixed: bool = False) -> dict:
     rec: list[dict] = []
     orig = integ._solve
 
-    def spy(A, b, z, filt, info, guess=None, tolerance=None):
+    def spy(A, b, z, filt, info, guess=None, tolerance=None, **kw):
         # A is the model's SystemMatrix (finalized lazily): its CSR
         rec.append({"A": sp.csr_array(getattr(A, "csr", A), copy=True), "b": b.reshape(-1).copy(), "z": z.reshape(-1).copy(),
                     "filt": Filter(filt.n, filt.fixed.copy(), filt.partial.copy(), filt.partial_S.copy())})
-        return orig(A, b, z, filt, info, guess, tolerance)
+        return orig(A, b, z, filt, info, guess, tolerance, **kw)
 
     sim.step(step - 1)
     x = sim.state.x.copy()

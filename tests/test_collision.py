@@ -686,9 +686,9 @@ def test_the_solves_of_steps_with_contacts_use_the_contact_tolerance(solver, exp
     seen = []
     orig = integ._solve
 
-    def spy(A, b, z, filt, info, guess=None, tolerance=None):
+    def spy(A, b, z, filt, info, guess=None, tolerance=None, **kw):
         seen.append((len(filt.partial) + len(filt.fixed) > 0, integ.tolerance if tolerance is None else tolerance))
-        return orig(A, b, z, filt, info, guess, tolerance)
+        return orig(A, b, z, filt, info, guess, tolerance, **kw)
 
     integ._solve = spy
     r = sim.run().report
