@@ -787,11 +787,8 @@ class _FusedHierarchy:
                 self.uv[:len(self.auv)] = self.auv
         self.version = fine.version
         c, Sc = self.clist, self.Sc
-        eye = np.eye(3)
         n0 = fine.n
-        _fused.inv3(self.adg.reshape(-1), self.dinv[:n0].reshape(-1))
-        if len(c):                               # constrained vertices: S D S + (I - S)
-            self.dinv[c] = inv3(Sc @ self.adg[c] @ Sc + (eye - Sc))
+        self._fine_inverses()
         if L == 0:
             mg._A = [_csr_from_blocks(fine, _filtered_blocks(fine, fine.blocks, filt))]
             return mg._A[-1].toarray()
@@ -847,12 +844,17 @@ class _FusedHierarchy:
         fine = self.mg.fine
         from ..kernels import pcg as _fused
         _fused.gather_blocks(fine.blocks.reshape(-1), fine.diag_index, self.adg.reshape(-1))
-        if self.precond_dtype != np.float64:
+        if self.precond_dtype != np.float64:     # the V-cycle's float32 copy
             self.dg[:fine.n] = self.adg
         self.version = fine.version
+        self._fine_inverses()
+
+    def _fine_inverses(self) -> None:
+        """The fine level's smoother blocks from its packed diagonal: the inverses of ``D``, and of
+        ``S D S + (I - S)`` at the constrained vertices."""
+        from ..kernels import pcg as _fused
         c, Sc = self.clist, self.Sc
-        n0 = fine.n
-        _fused.inv3(self.adg.reshape(-1), self.dinv[:n0].reshape(-1))
+        _fused.inv3(self.adg.reshape(-1), self.dinv[:self.mg.fine.n].reshape(-1))
         if len(c):
             self.dinv[c] = inv3(Sc @ self.adg[c] @ Sc + (np.eye(3) - Sc))
 
