@@ -283,6 +283,8 @@ def _corners(frame: Frame, k: int, shape, feats: np.ndarray, p0, p1, pairs=None)
     plain = ~cr & (dist > 1e-12) & (dist < th + frame.reach)
     n[plain] = gap[plain] / dist[plain, None]
     act = cr | plain
+    if isinstance(shape, MeshShape) and np.any(act):     # a mesh vertex holds the cloth only within its cone
+        act[act] = shape.vertex_cone(fi[act], n[act])
     if not np.any(act):
         return Planes.empty()
     a = np.flatnonzero(act)
@@ -324,6 +326,8 @@ def _edge_pairs(frame: Frame, k: int, shape, feats: np.ndarray, p0, p1, pairs=No
     plain = ~cr & (dist > 1e-12) & (dist < target_th + frame.reach) & interior
     n[plain] = gap[plain] / dist[plain, None]
     act = cr | plain
+    if isinstance(shape, MeshShape) and np.any(act):     # a mesh edge holds the cloth only within its cone
+        act[act] = shape.edge_cone(fi[act], n[act], qc[act])
     if not np.any(act):
         return Planes.empty()
     i = np.flatnonzero(act)

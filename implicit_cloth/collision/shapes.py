@@ -510,13 +510,19 @@ class Cone(Shape):
         return np.array([0.0, 0.0, 0.5 * self.height])
 
 
+#: A direction is outside a mesh feature's normal cone when its faces (or edges) lie on both sides of the plane
+#: normal to it by more than this cosine (about 3 degrees)
+CONE_TOLERANCE = 0.05
+
+
 class MeshShape(Shape):
     """A triangle mesh obstacle (any file trimesh reads), two-sided: the cloth stays on the side it is on.
 
     No signed distance: contacts are found by the box broad phase
     (:mod:`~implicit_cloth.collision.broadphase`) and the exact point-triangle
     and edge-edge tests of :mod:`~implicit_cloth.collision.ccd`. Every mesh
-    vertex and edge is treated as a sharp feature.
+    vertex and edge is treated as a sharp feature, holding the cloth only along
+    the directions of its normal cone (:meth:`edge_cone`, :meth:`vertex_cone`).
     """
 
     name = "mesh"
@@ -529,6 +535,7 @@ class MeshShape(Shape):
         e = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
         e.sort(axis=1)
         self.edges, inv = np.unique(e, axis=0, return_inverse=True)
+        inv = inv.ravel()
         self.face_edges = inv.reshape(3, -1).T                       # (F, 3) edge indices of each face
         self.bounds = (self.vertices.min(axis=0), self.vertices.max(axis=0))
         self.half_extent = np.maximum(np.abs(self.bounds[0]), np.abs(self.bounds[1]))
@@ -538,10 +545,57 @@ class MeshShape(Shape):
         self.feature_points = self.vertices
         self.feature_edges = self.vertices[self.edges]
         self.index = broadphase.TriangleIndex(self.vertices, self.faces)
+        # each edge's two faces' third vertices (-1: a boundary edge), for the edges' normal cones
+        opp = np.full((len(self.edges), 2), -1, dtype=np.int64)
+        third = self.faces[:, [2, 0, 1]].T.ravel()                   # opposite edges (v0 v1), (v1 v2), (v2 v0)
+        order = np.argsort(inv, kind="stable")
+        grouped = inv[order]
+        rank = np.arange(len(order)) - np.searchsorted(grouped, grouped)   # an edge's first, second face (manifold)
+        for j in (0, 1):
+            opp[grouped[rank == j], j] = third[order][rank == j]
+        self.edge_opposite = opp
+        # each vertex's edges (CSR), for the vertices' normal cones
+        ends = np.concatenate([self.edges, self.edges[:, ::-1]])
+        ends = ends[np.argsort(ends[:, 0], kind="stable")]
+        self.vertex_start = np.searchsorted(ends[:, 0], np.arange(len(self.vertices) + 1))
+        self.vertex_neighbours = ends[:, 1]
         # closed (every edge in exactly two faces): the mesh has an inside
         _, counts = np.unique(np.sort(np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]],
                                                       self.faces[:, [2, 0]]]), axis=1), axis=0, return_counts=True)
         self.closed = bool(np.all(counts == 2))
+
+    def edge_cone(self, edge: np.ndarray, n: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Whether each direction ``n`` (K, 3) from the point ``q`` of mesh edge ``edge`` (K,) lies in the edge's
+        normal cone, on either side (the mesh is two-sided): both of its faces on one side of the plane through
+        ``q`` normal to ``n`` (a boundary edge: always). Outside it, the point ``q + d n`` is nearer to a face than
+        to the edge (on a convex surface), and a contact along ``n`` holds the cloth across the surface."""
+        return self._cone(n, q, self.edge_opposite[edge])
+
+    def vertex_cone(self, vertex: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """Whether each direction ``n`` (K, 3) lies in the normal cone of mesh vertex ``vertex`` (K,), on either
+        side: every edge from the vertex on one side of the plane through it normal to ``n``."""
+        start, stop = self.vertex_start[vertex], self.vertex_start[vertex + 1]
+        count = stop - start
+        rows = np.repeat(np.arange(len(vertex)), count)
+        first = np.repeat(start - np.r_[0, count.cumsum()[:-1]], count)     # row r's j-th: start_r + j
+        nb = self.vertex_neighbours[first + np.arange(count.sum())]
+        d = self.vertices[nb] - self.vertices[vertex][rows]
+        c = np.einsum("ij,ij->i", n[rows], d) / np.maximum(np.linalg.norm(d, axis=1), 1e-300)
+        lo = np.full(len(vertex), np.inf)
+        hi = np.full(len(vertex), -np.inf)
+        np.minimum.at(lo, rows, c)
+        np.maximum.at(hi, rows, c)
+        return ~((lo < -CONE_TOLERANCE) & (hi > CONE_TOLERANCE))
+
+    def _cone(self, n: np.ndarray, q: np.ndarray, others: np.ndarray) -> np.ndarray:
+        """Whether the mesh vertices ``others`` (K, m; -1: none) lie on one side of the planes through ``q`` normal
+        to ``n`` (cosines within :data:`CONE_TOLERANCE` count as on the plane)."""
+        c = np.zeros(others.shape)
+        for j in range(others.shape[1]):            # the edge's two faces
+            d = self.vertices[np.maximum(others[:, j], 0)] - q
+            c[:, j] = np.where(others[:, j] >= 0,
+                               np.einsum("ij,ij->i", n, d) / np.maximum(np.linalg.norm(d, axis=1), 1e-300), 0.0)
+        return ~((c.min(axis=1) < -CONE_TOLERANCE) & (c.max(axis=1) > CONE_TOLERANCE))
 
     def depth(self, p: np.ndarray) -> np.ndarray:
         """Depth (K,) m of local points inside the mesh: the distance to the nearest face of the points inside
