@@ -292,6 +292,41 @@ def test_edge_edge_toi_closed_form():
     assert np.isinf(s[0])
 
 
+def test_toi_against_a_still_obstacle_equals_the_general_cubic():
+    """A triangle or edge that does not move (an obstacle's, passed as the same array for both ends) takes the
+    exact linear (point-triangle) or quadratic (edge-edge) coplanarity function instead of the sampled cubic:
+    the same hits, times of impact (to the cubic's bisection, 1e-12) and sides as the general path, which is
+    given copies so that it cannot tell (pairs within rounding of the plane at an end left out: there either
+    may call it a touch)."""
+    rng = np.random.default_rng(11)
+    k = 4000
+    a, b, c = (rng.uniform(-1, 1, (k, 3)) for _ in range(3))
+    p0 = (a + b + c) / 3 + rng.normal(size=(k, 3)) * 0.5
+    p1 = (a + b + c) / 3 - (p0 - (a + b + c) / 3) + rng.normal(size=(k, 3)) * 0.2
+    q0, q1 = p0 + rng.normal(size=(k, 3)) * 0.4, p1 + rng.normal(size=(k, 3)) * 0.4
+    n = np.cross(b - a, c - a)
+    def away(f0, f1):
+        return (np.abs(f0) > 1e-12) & (np.abs(f1) > 1e-12)
+
+    def edge_f(p, q):
+        return np.einsum("ij,ij->i", np.cross(q - p, b - a), a - p)
+
+    for name, fast_args, slow_args, tols, clear in (
+            ("point", (p0, p1, a, a, b, b, c, c), (p0, p1, a, a.copy(), b, b.copy(), c, c.copy()), (1e-9, 1e-6, 0.05),
+             away(np.einsum("ij,ij->i", n, p0 - a), np.einsum("ij,ij->i", n, p1 - a))),
+            ("edge", (p0, p1, q0, q1, a, a, b, b), (p0, p1, q0, q1, a, a.copy(), b, b.copy()), (1e-6, 0.05),
+             away(edge_f(p0, q0), edge_f(p1, q1)))):
+        fn = ccd.point_triangle_toi if name == "point" else ccd.edge_edge_toi
+        for tol in tols:
+            fast, slow = fn(*fast_args, tol), fn(*slow_args, tol)
+            hit = np.isfinite(fast[0])
+            assert 0.05 < hit[clear].mean() < 0.9, (name, tol)
+            assert np.array_equal(hit[clear], np.isfinite(slow[0])[clear]), (name, tol)
+            both = hit & clear
+            assert np.allclose(fast[0][both], slow[0][both], rtol=0, atol=1e-10), (name, tol)
+            assert np.array_equal(fast[1][clear], slow[1][clear]), (name, tol)
+
+
 # --------------------------------------------------------------------------- cloth against obstacles
 DROPS = {
     "sphere": ({"shape": "sphere", "radius": 0.2, "center": [0.0, 0.0, -0.2]}, (0.0, 0.0, 0.1)),

@@ -99,13 +99,19 @@ def _cubic_roots(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Roots in [0, 1] of the cubics through ``samples`` (K, 4) at s = 0, 1/3, 2/3, 1.
 
     Returns the roots (K, 3), ascending, inf where there are fewer, and the
-    coefficients (K, 4) of ``c0 + c1 s + c2 s^2 + c3 s^3``.
+    coefficients (K, 4) of ``c0 + c1 s + c2 s^2 + c3 s^3`` (:func:`_poly_roots`).
+    """
+    return _poly_roots(samples @ _VANDERMONDE_INV.T)
+
+
+def _poly_roots(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Roots in [0, 1] of the cubics ``c0 + c1 s + c2 s^2 + c3 s^3`` (coefficients (K, 4)), ascending, inf where
+    there are fewer (K, 3), and the coefficients.
 
     Each row's interval [0, 1] is split at the real roots of the derivative; on
     each monotone piece a sign change (or a zero end) is bisected.
     """
-    k = len(samples)
-    c = samples @ _VANDERMONDE_INV.T                     # c0 + c1 s + c2 s^2 + c3 s^3
+    k = len(c)
     a, b, cc = 3 * c[:, 3], 2 * c[:, 2], c[:, 1]         # f'(s) = a s^2 + b s + cc
     crit = np.full((k, 2), 2.0)                          # 2.0 = "no break point"
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -168,6 +174,22 @@ def _lerp(x0, x1, s):
     return x0 + s[:, None] * (x1 - x0)
 
 
+def _linear_roots(f0: np.ndarray, f1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_poly_roots` of the linear ``f0 + (f1 - f0) s``, exactly: the crossing ``f0 / (f0 - f1)`` where the
+    sign changes, 0 and 1 where ``f`` is zero there."""
+    k = len(f0)
+    coef = np.zeros((k, 4))
+    coef[:, 0], coef[:, 1] = f0, f1 - f0
+    crossing = np.sign(f0) * np.sign(f1) < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(crossing, f0 / (f0 - f1), np.inf)
+    roots = np.full((k, 3), np.inf)
+    zero0, zero1 = f0 == 0, f1 == 0
+    roots[:, 0] = np.where(zero0, 0.0, np.where(crossing, s, np.where(zero1, 1.0, np.inf)))
+    roots[:, 1] = np.where(zero0 & zero1, 1.0, np.inf)
+    return roots, coef
+
+
 def _earliest_hit(f, hit, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Earliest root of the cubic ``f(s)`` (sampled at 0, 1/3, 2/3, 1) at which ``hit(cand, s)`` holds.
 
@@ -175,7 +197,12 @@ def _earliest_hit(f, hit, k: int) -> tuple[np.ndarray, np.ndarray]:
     are in contact at their root ``s``. Returns the time of impact (inf if none) and the side before it.
     """
     samples = np.column_stack([f(s) for s in (0.0, 1 / 3, 2 / 3, 1.0)])
-    roots, coef = _cubic_roots(samples)
+    return _first_hit(*_cubic_roots(samples), hit, k)
+
+
+def _first_hit(roots: np.ndarray, coef: np.ndarray, hit, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The earliest of the ``roots`` (K, 3) of the polynomials ``coef`` at which ``hit(cand, s)`` holds: the time
+    of impact (inf if none) and the side before it (:func:`_earliest_hit`)."""
     toi = np.full(k, np.inf)
     which = np.zeros(k, dtype=np.int64)
     for j in range(3):                      # the (at most three) roots in increasing order
@@ -215,6 +242,9 @@ def point_triangle_toi(p0, p1, a0, a1, b0, b1, c0, c1, tol: float) -> tuple[np.n
                                       _lerp(c0[cand], c1[cand], s))
         return _dot(p - q, p - q) <= tol * tol
 
+    if a0 is a1 and b0 is b1 and c0 is c1:      # a triangle that does not move (an obstacle's): f is linear
+        n = np.cross(b0 - a0, c0 - a0)
+        return _first_hit(*_linear_roots(_dot(n, p0 - a0), _dot(n, p1 - a0)), hit, len(p0))
     return _earliest_hit(f, hit, len(p0))
 
 
@@ -240,4 +270,13 @@ def edge_edge_toi(p0, p1, q0, q1, u0, u1, w0, w1, tol: float) -> tuple[np.ndarra
         gap = (p + a[:, None] * (q - p)) - (u + b[:, None] * (w - u))
         return _dot(gap, gap) <= tol * tol
 
+    if u0 is u1 and w0 is w1:       # edge uw does not move (an obstacle's): f is quadratic, its coefficients exact
+        e = np.cross(q0 - p0, w0 - u0)                  # (d0 + s dd) x e, with d = q - p and e = w - u
+        de = np.cross((q1 - q0) - (p1 - p0), w0 - u0)
+        g0, dp = u0 - p0, p1 - p0                       # u - p = g0 - s dp
+        coef = np.zeros((len(p0), 4))
+        coef[:, 0] = _dot(e, g0)
+        coef[:, 1] = _dot(de, g0) - _dot(e, dp)
+        coef[:, 2] = -_dot(de, dp)
+        return _first_hit(*_poly_roots(coef), hit, len(p0))
     return _earliest_hit(f, hit, len(p0))
