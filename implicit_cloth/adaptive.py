@@ -150,7 +150,7 @@ class StepController:
             over = (eps1 > self.max_strain) & (eps1 > eps0)
             if np.any(over):
                 failed["strain"] = float(eps1[over].max())
-        work = info.collision.work if info.collision is not None else 0.0
+        work = (info.collision.work if info.collision is not None else 0.0) + info.self_work
         gain, e_step = self.measures.balance(old, new, h, work)
         if gain > self.max_energy_growth * e_step:
             failed["energy"] = gain
@@ -241,6 +241,7 @@ class StepController:
             total.converged = total.converged and info.converged
             total.solves += info.solves
             total.newton_iterations = max(total.newton_iterations, info.newton_iterations)
+            total.self_work += info.self_work
         state.t = t_end          # sums of dt / 2^L may round differently (in place: BDF2 keys its history on it)
         return state, total
 

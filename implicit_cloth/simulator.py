@@ -257,6 +257,7 @@ class Simulator:
                 return again
 
         new = sc.step(state, new, h, self.collider, resolve)
+        info.self_work = sc.last_work
         return new, info
 
     def _obstacle_substep(self, state: State, h: float, newton: int | None = None,
@@ -310,7 +311,7 @@ class Simulator:
                 old = self.state
                 new, info = self._substep(old, self.dt)
                 if self._checks_steps and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
-                    work = info.collision.work if info.collision is not None else 0.0
+                    work = (info.collision.work if info.collision is not None else 0.0) + info.self_work
                     gain, e_step = self.measures.balance(old, new, self.dt, work)
                     if gain > self._energy_growth * e_step:
                         self.health.add("energy", new.t, gain)
@@ -533,9 +534,9 @@ class _Recorder:
     def after_step(self, s: int, info: Any, ts: float) -> bool:
         """Book step ``s``; keep a frame when due. False when the run diverged."""
         sim, model, tot, acc = self.sim, self.sim.model, self.totals, self.acc
-        if self.pins_move:   # trapezoidal work of the pins over this step
+        if self.pins_move:   # trapezoidal work of the pins over this step, and through self-contact
             p_new = diagnostics.pin_power(model, sim.state.x, sim.state.v, sim.state.t)
-            self.pin_work += 0.5 * self.dt * (self.pin_p + p_new)
+            self.pin_work += 0.5 * self.dt * (self.pin_p + p_new) + info.self_work
             self.pin_p = p_new
         tot["steps"] += 1
         tot["iterations"] += info.iterations

@@ -79,6 +79,9 @@ class StepInfo:
     #: whether the contacts' pending friction bounds (:attr:`Constraints.pending`: new contacts) were set from the
     #: step's first solve, so that its friction iterations solved theirs too
     pending_bounds: bool = False
+    #: the pins' work on the cloth through self-contact in the step (self-collision's :attr:`SelfInfo.work
+    #: <implicit_cloth.selfcontact.SelfInfo.work>`), J; booked in the energy balance like the pins' own
+    self_work: float = 0.0
 
     @property
     def attempted_solves(self) -> int:

@@ -34,8 +34,10 @@ own relative velocities: only its approach is removed. Pinned vertices are not m
 obstacle holds (within ``CONTACT_BAND`` thicknesses of a primitive obstacle at the end of the step) is not
 moved into it: that part of its impulse is the obstacle's reaction, so a layer landing on cloth that lies on
 the floor is stopped through it, and an impact zone with such a vertex moves with the vertices held. Only
-static obstacles hold vertices so (a moving one's reaction would do work); nothing here does work on the
-cloth, so the step's energy balance counts none.
+static obstacles hold vertices so (a moving one's reaction would do work). Moving pins do: a pinned vertex
+takes no impulse, its pin takes the reaction, so a pinned edge carried into the cloth pushes it; that work
+(each pair's momentum to its free vertices times its pinned part's velocity, and an impact zone's momentum
+from its pins times theirs) is booked in the step's energy balance with the pins' own (:attr:`SelfInfo.work`).
 """
 
 from __future__ import annotations
@@ -92,6 +94,9 @@ class SelfInfo:
     resolved: int = 0
     t_broad: float = 0.0
     t_self: float = 0.0
+    #: the pins' work on the cloth through the impulses and impact zones, J (a moving pinned vertex pushing
+    #: the cloth through self-contact: the step's energy balance books it with the pins' own)
+    work: float = 0.0
 
     def _combine(self, other: "SelfInfo", add: tuple[str, ...] = (), most: tuple[str, ...] = (),
                  last: tuple[str, ...] = ()) -> None:
@@ -106,8 +111,8 @@ class SelfInfo:
     def merge(self, second: "SelfInfo", resolved: int) -> None:
         """The figures of the second pass of the same step (after the solve again with ``resolved`` vertices
         prescribed): impulses summed, the impact zones and what is unresolved the second pass's."""
-        self._combine(second, add=("t_self", "t_broad", "proximities", "impacts"), most=("candidates", "rounds"),
-                      last=("zone_vertices", "zones", "unresolved"))
+        self._combine(second, add=("t_self", "t_broad", "proximities", "impacts", "work"),
+                      most=("candidates", "rounds"), last=("zone_vertices", "zones", "unresolved"))
         self.resolved = resolved
 
     def absorb(self, other: "SelfInfo", accepted: bool = True) -> None:
@@ -115,7 +120,7 @@ class SelfInfo:
         self._combine(other, add=("t_self", "t_broad"))
         if accepted:
             self._combine(other, add=("candidates", "proximities", "impacts", "zone_vertices", "zones", "unresolved",
-                                      "resolved"), most=("rounds",))
+                                      "resolved", "work"), most=("rounds",))
 
 
 class SelfCollider:
@@ -151,6 +156,8 @@ class SelfCollider:
         self.totals = SelfTotals()
         self.response = Response(self.faces, self.edges, self.masses, self.thickness, self.friction, self.rounds)
         self.last_pairs: Pairs | None = None
+        #: the pins' work through self-contact in the last step corrected (:attr:`SelfInfo.work`), J
+        self.last_work = 0.0
         self._check_start(model.rest_positions)
 
     def _check_start(self, x: np.ndarray) -> None:
@@ -246,6 +253,7 @@ class SelfCollider:
             info.merge(self.respond(before, again, h, collider, self.last_pairs), resolved=len(idx))
             after = again
         self.totals.attempt(after, info)
+        self.last_work = info.work
         return after
 
     def report(self, state: Any, health: Any) -> dict[str, Any]:

@@ -266,7 +266,7 @@ def _impacts(x0: np.ndarray, x1: np.ndarray, idx: np.ndarray, vf: np.ndarray, to
 
 
 def impulses(v: np.ndarray, idx: np.ndarray, c: np.ndarray, n: np.ndarray, dn: np.ndarray, inv: np.ndarray,
-             mu: float, wall: np.ndarray | None = None) -> np.ndarray:
+             mu: float, wall: np.ndarray | None = None, work: list[float] | None = None) -> np.ndarray:
     """Velocity changes (N, 3) of the impulses that raise each pair's relative normal velocity by ``dn >= 0``,
     with friction ``mu``, averaged over the pairs acting on each vertex (Jacobi).
 
@@ -274,6 +274,14 @@ def impulses(v: np.ndarray, idx: np.ndarray, c: np.ndarray, n: np.ndarray, dn: n
     vertex's change into that obstacle is taken by the obstacle (removed), so a layer landing on cloth that
     lies on the floor is stopped by the floor through it. The pair's other vertices keep their share only, so
     the pair's approach slows less but never reverses: still only energy taken.
+
+    ``work`` (a list, appended to): the work of the pins through these impulses, J. A pinned vertex (``inv``
+    0) does not move: its pin takes the pair's reaction and, moving, does work on the cloth. Each pair with
+    pinned vertices gives its free vertices the momentum ``c_k j n`` (shared as their changes are, over the
+    pairs acting on them); the pins' work is that momentum times the pinned part's velocity at the pair
+    (``v`` of its pinned vertices, weighted by ``|c_k|``). In that part's frame the impulse only takes energy
+    away, so the free vertices gain at most that. Vertices an obstacle holds (``wall``) are left out of it (the
+    obstacle takes part of their change): the work is not over-counted.
     """
     out = np.zeros_like(v)
     act = dn > 0
@@ -295,10 +303,29 @@ def impulses(v: np.ndarray, idx: np.ndarray, c: np.ndarray, n: np.ndarray, dn: n
         out[:, j] = np.bincount(flat, weights=dv[:, :, j].ravel(), minlength=len(v))
     count = np.bincount(flat[(c * w).ravel() != 0], minlength=len(v))
     out /= np.maximum(count, 1)[:, None]
+    if work is not None:
+        work.append(_pins_work(v, idx, c, w, J, count, wall))
     if wall is not None:
         into = np.minimum(_dot(out, wall), 0.0)
         out -= into[:, None] * wall
     return out
+
+
+def _pins_work(v: np.ndarray, idx: np.ndarray, c: np.ndarray, w: np.ndarray, J: np.ndarray, count: np.ndarray,
+               wall: np.ndarray | None) -> float:
+    """The pins' work through the impulses ``J`` (K, 3) of pairs ``idx``, ``c`` (inverse masses ``w``) of
+    :func:`impulses`: each pair's momentum to its free vertices times its pinned part's velocity, J."""
+    pinned = (w == 0) & (c != 0)
+    rows = np.flatnonzero(pinned.any(axis=1))
+    if not len(rows):
+        return 0.0
+    weight = np.where(pinned[rows], np.abs(c[rows]), 0.0)
+    u = np.einsum("rk,rkj->rj", weight, v[idx[rows]]) / weight.sum(axis=1)[:, None]
+    free = (w[rows] > 0) & (c[rows] != 0)
+    if wall is not None:
+        free &= ~np.any(wall[idx[rows]] != 0, axis=2)
+    share = np.where(free, c[rows] / np.maximum(count[idx[rows]], 1), 0.0).sum(axis=1)
+    return float(np.einsum("r,rj,rj->", share, J[rows], u))
 
 
 class Response:
@@ -310,6 +337,8 @@ class Response:
         self.th, self.mu, self.rounds = thickness, friction, rounds
         self.wall: np.ndarray | None = None
         self.tol = IMPACT_TOLERANCE * thickness
+        #: the pins' work on the cloth through this pass's impulses and impact zones, J (appended to)
+        self.work: list[float] = []
 
     def run(self, x0: np.ndarray, after: Any, h: float, inv: np.ndarray, pairs: Pairs, info: Any,
             wall: np.ndarray | None = None) -> Pairs:
@@ -317,6 +346,7 @@ class Response:
         the obstacles holding vertices (:func:`impulses`; held vertices anchor impact zones). Returns the
         candidates as last searched."""
         self.wall = wall
+        self.work = []
         th, mu = self.th, self.mu
         vb = (after.x - x0) / h
         vb0 = vb.copy()
@@ -358,14 +388,16 @@ class Response:
             self._zones(x0, vb, v1, h, inv, pairs, hit, info, toi)
         moved = np.any(vb != vb0, axis=1)
         after.x[moved] = x0[moved] + h * vb[moved]
+        info.work += float(sum(self.work))
         return toi.pairs if toi.pairs is not None else pairs
 
     def _apply(self, vb, v1, idx, c, n, dn, inv, mu) -> None:
-        """The impulses on the average velocity, and on the end velocity only what removes its approach."""
+        """The impulses on the average velocity, and on the end velocity only what removes its approach (the
+        pins' work booked from these: the end velocities carry the kinetic energy the step ends with)."""
         vb += impulses(vb, idx, c, n, dn, inv, mu, self.wall)
         vn1 = _dot(np.einsum("ik,ikj->ij", c, v1[idx]), n)
         dn1 = np.minimum(np.maximum(-vn1, 0.0), dn)
-        v1 += impulses(v1, idx, c, n, dn1, inv, mu, self.wall)
+        v1 += impulses(v1, idx, c, n, dn1, inv, mu, self.wall, self.work)
 
     def _fresh(self, pairs: Pairs, x0: np.ndarray, x1: np.ndarray, inv: np.ndarray
                ) -> tuple[Pairs, np.ndarray | None]:
@@ -443,6 +475,12 @@ class Response:
                 np.logical_or.at(into, z[held], _dot(mean[z[held]], self.wall[zv[held]]) < 0)
                 mean[into & (n_pin == 0)] = 0.0
             sel = ~pinned & ((n_pin[z] > 0) | (n_held[z] > 0))
+            if arr is v1:                  # the pins' work: the momentum they give the zone times their velocity
+                by_pins = sel & (n_pin[z] > 0)
+                if np.any(by_pins):
+                    k = zv[by_pins]
+                    dp = m[by_pins, None] * (mean[z[by_pins]] - arr[k])
+                    self.work.append(float(np.einsum("ij,ij->", dp, mean[z[by_pins]])))
             arr[zv[sel]] = mean[z[sel]]
         # a zone's pins moving apart (not with one velocity) do not move it rigidly
         spread = np.zeros(nz)
