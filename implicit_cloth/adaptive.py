@@ -150,8 +150,7 @@ class StepController:
             over = (eps1 > self.max_strain) & (eps1 > eps0)
             if np.any(over):
                 failed["strain"] = float(eps1[over].max())
-        work = (info.collision.work if info.collision is not None else 0.0) + info.self_work
-        gain, e_step = self.measures.balance(old, new, h, work)
+        gain, e_step = self.measures.balance(old, new, h, info.external_work)
         if gain > self.max_energy_growth * e_step:
             failed["energy"] = gain
         return failed

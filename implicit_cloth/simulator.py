@@ -311,8 +311,7 @@ class Simulator:
                 old = self.state
                 new, info = self._substep(old, self.dt)
                 if self._checks_steps and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
-                    work = (info.collision.work if info.collision is not None else 0.0) + info.self_work
-                    gain, e_step = self.measures.balance(old, new, self.dt, work)
+                    gain, e_step = self.measures.balance(old, new, self.dt, info.external_work)
                     if gain > self._energy_growth * e_step:
                         self.health.add("energy", new.t, gain)
             else:

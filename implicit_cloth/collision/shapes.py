@@ -560,9 +560,7 @@ class MeshShape(Shape):
         self.vertex_start = np.searchsorted(ends[:, 0], np.arange(len(self.vertices) + 1))
         self.vertex_neighbours = ends[:, 1]
         # closed (every edge in exactly two faces): the mesh has an inside
-        _, counts = np.unique(np.sort(np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]],
-                                                      self.faces[:, [2, 0]]]), axis=1), axis=0, return_counts=True)
-        self.closed = bool(np.all(counts == 2))
+        self.closed = bool(np.all(np.bincount(inv, minlength=len(self.edges)) == 2))
 
     def edge_cone(self, edge: np.ndarray, n: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Whether each direction ``n`` (K, 3) from the point ``q`` of mesh edge ``edge`` (K,) lies in the edge's

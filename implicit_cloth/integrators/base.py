@@ -84,6 +84,12 @@ class StepInfo:
     self_work: float = 0.0
 
     @property
+    def external_work(self) -> float:
+        """The work on the cloth the step's energy balance books beside the pins' spring forces, J: the
+        obstacles' (:attr:`collision`'s ``work``) and the pins' through self-contact (:attr:`self_work`)."""
+        return (self.collision.work if self.collision is not None else 0.0) + self.self_work
+
+    @property
     def attempted_solves(self) -> int:
         """Every linear solve made for the step, the discarded attempts' included."""
         return self.solves + self.discarded_solves
