@@ -34,7 +34,7 @@ BACKENDS = ("numpy", "numba")
 MAX_DURATION = 0.3      # s: examples are cut to at most this much simulated time
 # report entries that measure the machine, not the run
 TIMING_KEYS = {"wall_time", "timing", "t_assembly", "t_setup", "t_solve", "t_other", "t_collision", "time",
-               "mean_time_per_step", "broad_phase_time"}
+               "mean_time_per_step", "broad_phase_time", "threading_layer"}
 
 
 def _report_numbers(obj: Any, path: str = "") -> list[str]:

@@ -53,12 +53,14 @@ def threads() -> int:
     """Threads the compiled solver may use: :func:`set_threads`, else ``$IMPLICIT_CLOTH_THREADS``, else 1.
 
     Only the numba back-end uses more than one, and only on multigrid levels of at least
-    :data:`implicit_cloth.solvers.multigrid.THREAD_MIN_VERTICES` vertices (the products, smoothing sweeps,
-    transfers and CG's updates; CG's dot products, the assembly and the Galerkin refresh stay serial). The
-    numbers are the same for every thread count: the chunks, not the threads, decide what is summed where, so a
-    run is reproducible bit for bit. One thread by default: on the shared 2-core test machine a second thread
-    was slower whenever other work held the other core (see docs/benchmarks.md). BLAS threads are a separate
-    setting (``Simulator(blas_threads=1)`` by default).
+    :func:`implicit_cloth.solvers.multigrid.thread_min_vertices` vertices (1024 under GNU OpenMP's threading
+    layer, which the kernels ask numba for first, :mod:`implicit_cloth.kernels.layer`; 16384 under the others):
+    the products, smoothing sweeps, transfers, CG's updates and, from 16384 fine vertices, its dot products,
+    and the Galerkin refresh; the springs' assembly stays serial. The numbers are the same for every thread
+    count: the chunks, not the threads, decide what is summed where, so a run is reproducible bit for bit.
+    One thread by default: on the shared 2-core test machine a second thread was slower whenever other work
+    held the other core (see docs/benchmarks.md). BLAS threads are a separate setting
+    (``Simulator(blas_threads=1)`` by default).
     """
     if _threads is not None:
         return _threads

@@ -105,6 +105,9 @@ class SolverReport(Record):
     threads: int = 1
     #: BLAS threads while stepping (``Simulator(blas_threads=...)``; None: not limited)
     blas_threads: int | None = 1
+    #: numba's threading layer the compiled solver's parallel regions ran on (``"omp"`` first, see
+    #: :mod:`implicit_cloth.kernels.layer`); None on the numpy path or when no parallel region ran
+    threading_layer: str | None = None
     #: the tolerance of the solves of steps with contacts (``solver.contact_tolerance``; absent in reports
     #: written before it existed)
     contact_tolerance: float | None = None
@@ -114,7 +117,7 @@ class SolverReport(Record):
     mean_attempted_iterations: float | None = None
 
     OPTIONAL_KEYS: ClassVar[frozenset[str]] = frozenset({"contact_tolerance", "mean_attempted_solves",
-                                                         "mean_attempted_iterations"})
+                                                         "mean_attempted_iterations", "threading_layer"})
 
 
 @dataclass

@@ -667,6 +667,9 @@ class _Recorder:
                 "threads": threads() if getattr(integ.precond, "compiled", False) else 1,
                 "blas_threads": sim.blas_threads,
             }
+            layer = _threading_layer(integ.precond)
+            if layer is not None:                    # (the numpy path, or no parallel region ran: left out)
+                report["solver"]["threading_layer"] = layer
             if tot["unconverged_steps"]:
                 warnings.warn(
                     f"the linear solver did not reach tolerance {integ.tolerance:g}"
@@ -732,6 +735,15 @@ class _CollisionTotals:
 
 
 _CONTROLLER: Any = None
+
+
+def _threading_layer(precond) -> str | None:
+    """numba's threading layer the compiled solver's parallel regions ran on (None: numpy, or none ran)."""
+    if not getattr(precond, "compiled", False):
+        return None
+    from .kernels import layer
+
+    return layer.current()
 
 
 def _blas_threads(n: int | None):

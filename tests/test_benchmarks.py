@@ -204,3 +204,16 @@ def test_rigid_coarse_quick(tmp_path):
     for r in res["rows"]:
         assert r["converged"] and r["iterations"] >= 1 and r["true_error"] < 1e-2 and r["passes"] > 0
     assert (tmp_path / "rigid_coarse_quick.md").read_text().count("\n| ") == 5      # header, four levers
+
+
+def test_threads_layer_quick(tmp_path):
+    """The threading-layer study runs each layer that loads here on one and two threads, in its own processes."""
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "threads_layer.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    res = json.loads((tmp_path / "threads_layer.json").read_text())
+    assert res["benchmark"] == "threads_layer" and res["quick"] is True
+    assert res["rows"] and {r["n"] for r in res["rows"]} == {32}
+    for r in res["rows"]:
+        assert r["layer"] in ("tbb", "omp", "workqueue") and r["ms_1"] > 0 and r["ms_2"] > 0
+        assert r["same_numbers"]                     # two threads give one thread's positions to the last bit
+    assert (tmp_path / "threads_layer.md").read_text().count("\n| ") == 1 + len(res["rows"])      # header, rows

@@ -440,17 +440,20 @@ def test_numba_fine_blocks_need_not_be_symmetric_themselves():
 
 
 @pytest.mark.skipif(not numba_available(), reason="numba not installed")
-@pytest.mark.parametrize("vcycle", ["float64", "float32"])
+@pytest.mark.parametrize("vcycle", ["float64", "float32", "chunked sums"])
 def test_threads_give_the_same_numbers_and_match_a_direct_solve(monkeypatch, vcycle):
     """The threaded passes (every level threaded here) give the serial numbers to the last bit, for 1 and 2
     threads, with pins and contact-like filters (sliding along a tilted normal, sticking); dv within the
     tolerance of a direct solve, constrained components exact. Whole steps agree as well. Both with the
-    float64 V-cycle and with the float32 one of large cloths."""
+    float64 V-cycle and with the float32 one of large cloths, and with CG's dot products summed by chunks
+    (large cloths: on threads, the same numbers at every thread count)."""
     from implicit_cloth import backend
     from implicit_cloth.solvers import multigrid
 
     monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES", 0)
+    monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES_OTHER_LAYERS", 0)
     monkeypatch.setattr(multigrid, "FLOAT32_MIN_VERTICES", 0 if vcycle == "float32" else None)
+    monkeypatch.setattr(multigrid, "CHUNKED_SUMS_MIN_VERTICES", 0 if vcycle == "chunked sums" else 10**9)
     sim = ic.Simulator(_scene(res=(30, 27)), dt=H)
     m, A, b = _system(sim, steps=4)
     z = np.random.default_rng(4).standard_normal(b.shape) * 0.01
@@ -467,7 +470,9 @@ def test_threads_give_the_same_numbers_and_match_a_direct_solve(monkeypatch, vcy
             backend.set_threads(th)
             mg = make_preconditioner("multigrid", m, "numba")
             mg.setup(None, filt)
-            assert mg.engine.lpar.all() and mg.engine.vu6.dtype == np.dtype(vcycle)
+            assert mg.engine.lpar.all() and mg.engine.vu6.dtype == np.dtype(vcycle if vcycle != "chunked sums"
+                                                                            else "float64")
+            assert len(mg.engine._sum_chunks()) == (9 if vcycle == "chunked sums" else 0)
             r = filt.apply(np.random.default_rng(2).standard_normal(b.shape))
             v = mg.apply(r)
             dv, res = filtered_pcg(m.system.csr, b, z, filt, mg, tol=1e-4, mass=np.repeat(m.masses, 3))
@@ -583,3 +588,40 @@ def test_a_diagonal_refresh_still_solves_within_tolerance(preconditioner, accele
     A = sysm.csr
     assert abs(A - before).sum() > 0
     _check_against_direct(m, A, b, z, filt, partial, pc, tol)
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed")
+def test_threading_layer_prefers_openmp_unless_the_user_chose():
+    """The kernels ask numba for GNU OpenMP's layer first (short parallel regions scale under it, not under
+    TBB's); a layer named in the environment is kept; the run report says which ran (fresh processes: numba
+    chooses the layer once per process)."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, numba, implicit_cloth as ic\n"
+            "from implicit_cloth.kernels import layer, pcg\n"
+            "assert layer.current() is None\n"
+            "pcg.pgather_blocks(np.zeros(90), np.arange(10), np.zeros(90))\n"
+            "sim = ic.Simulator(ic.Scene.from_dict({'cloth': {'resolution': [8, 8], 'mass': 0.1, 'pins': ['top_left']},"
+            " 'simulation': {'dt': 0.01}}))\n"
+            "rep = sim.run(duration=0.02).report['solver']\n"
+            "print(numba.config.THREADING_LAYER_PRIORITY, layer.current(), rep.get('threading_layer'))\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING_LAYER")}
+
+    def run(extra):
+        out = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split()[-2:], out.stdout
+
+    (ran, reported), text = run({})
+    assert "['omp', 'tbb', 'workqueue']" in text
+    assert ran == reported and ran in ("omp", "tbb", "workqueue")
+    try:
+        from numba.np.ufunc import omppool  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        assert ran == "omp"
+    (ran, reported), _ = run({"NUMBA_THREADING_LAYER": "workqueue"})
+    assert ran == reported == "workqueue"

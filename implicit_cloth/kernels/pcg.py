@@ -32,10 +32,13 @@ Every function is compiled with ``cache=True`` (the compiled code is stored
 next to this file in ``__pycache__``), so the compilation (25-50 s on the
 2-core test machine) is paid once per installation, not per run.
 Threads (:func:`implicit_cloth.backend.threads`, one by default): the passes of levels of at least
-``multigrid.THREAD_MIN_VERTICES`` vertices run on numba threads (``prange``) over a fixed number of
+``multigrid.thread_min_vertices()`` vertices run on numba threads (``prange``) over a fixed number of
 chunks, each writing only its own rows (:func:`_psymmv`: a stored block between two chunks is read by
 both, each taking its side), so the numbers are the same, to the last bit, for every thread count and
-as serially; CG's dot products stay serial for the same reason.
+as serially. CG's dot products are one serial sum on small cloths; from
+``multigrid.CHUNKED_SUMS_MIN_VERTICES`` fine vertices they are summed over fixed chunks at every thread
+count (:func:`_chunked_sums`), the partial sums on threads, so they too give the same numbers whatever the
+thread count. The parallel regions run on numba's threading layer as :mod:`.layer` chooses it.
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from . import estimate
+from . import estimate, layer  # noqa: F401  (layer: the threading layer, chosen before any region runs)
 
 
 @njit(cache=True, inline="always")
@@ -154,23 +157,38 @@ def _psymmv(dg, uI, uJ, uv, u6, use6, vb, kb, ip, ib, x, y):
     receives the same terms in the same order as in the serial pass, whatever the number of threads.
     """
     for c in prange(len(vb) - 1):
+        v0 = vb[c]
         v1 = vb[c + 1]
-        _diag_rows(dg, x, y, vb[c], v1)
-        for m in range(ip[c], ip[c + 1]):
-            k = ib[m]
+        # each chunk works on views whose loops start at 0: with ranges starting at a chunk's bound LLVM could
+        # not prove the indices non-negative and kept numba's wraparound test on every access (the chunked
+        # product was 30 % slower a thread than the serial one; with the views the same speed)
+        _diag_product(dg[v0:v1], x[3 * v0:3 * v1], y[3 * v0:3 * v1])
+        inc = ib[ip[c]:ip[c + 1]]
+        for m in range(len(inc)):
+            k = inc[m]
             if use6:
                 _block6_both(u6[k], uI[k], uJ[k], x, y, False, True)
             else:
                 _block_col_side(uv[k], uI[k], uJ[k], x, y)
-        for k in range(kb[c], kb[c + 1]):
-            i = uI[k]
-            j = uJ[k]
-            if use6:
-                _block6_both(u6[k], i, j, x, y, True, j < v1)
-            else:
-                _block_row_side(uv[k], i, j, x, y)
+        ci = uI[kb[c]:kb[c + 1]]
+        cj = uJ[kb[c]:kb[c + 1]]
+        if use6:
+            c6 = u6[kb[c]:kb[c + 1]]
+            for k in range(len(ci)):
+                i = ci[k]
+                j = cj[k]
                 if j < v1:
-                    _block_col_side(uv[k], i, j, x, y)
+                    _block6_both(c6[k], i, j, x, y, True, True)
+                else:
+                    _block6_both(c6[k], i, j, x, y, True, False)
+        else:
+            cv = uv[kb[c]:kb[c + 1]]
+            for k in range(len(ci)):
+                i = ci[k]
+                j = cj[k]
+                _block_row_side(cv[k], i, j, x, y)
+                if j < v1:
+                    _block_col_side(cv[k], i, j, x, y)
 
 
 @njit(cache=True, fastmath={"contract"})
@@ -419,6 +437,96 @@ def _cg_update(dv, r, p, q, alpha, mass, use_mass):
     return dd, rmr, dmd
 
 
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _sums_range(a, b, c, d, alpha, mass, mode, lo, hi):
+    """Chunk ``lo:hi`` of the CG sums (views from 0: no wraparound test). ``mode`` 0: ``(a.b, 0, 0)``;
+    1: ``(a.b, a.a, 0)``; 2: the update ``a += alpha c``, ``b -= alpha d`` (``dv``, ``r``, ``p``, ``q``), then
+    ``(a.a, b.M^-1 b, a.M a)`` (the last two with ``mass`` non-empty)."""
+    x = a[lo:hi]
+    y = b[lo:hi]
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    if mode == 0:
+        for k in range(len(x)):
+            s0 += x[k] * y[k]
+    elif mode == 1:
+        for k in range(len(x)):
+            s0 += x[k] * y[k]
+            s1 += x[k] * x[k]
+    else:
+        pc = c[lo:hi]
+        qd = d[lo:hi]
+        if len(mass):
+            m = mass[lo:hi]
+            for k in range(len(x)):
+                u = x[k] + alpha * pc[k]
+                w = y[k] - alpha * qd[k]
+                x[k] = u
+                y[k] = w
+                s0 += u * u
+                s1 += w * w / m[k]
+                s2 += u * u * m[k]
+        else:
+            for k in range(len(x)):
+                u = x[k] + alpha * pc[k]
+                w = y[k] - alpha * qd[k]
+                x[k] = u
+                y[k] = w
+                s0 += u * u
+    return s0, s1, s2
+
+
+@njit(cache=True, fastmath={"contract"}, parallel=True)
+def _psums(a, b, c, d, alpha, mass, mode, cb, out):
+    for ch in prange(len(cb) - 1):
+        out[ch, 0], out[ch, 1], out[ch, 2] = _sums_range(a, b, c, d, alpha, mass, mode, cb[ch], cb[ch + 1])
+
+
+@njit(cache=True, fastmath={"contract"})
+def _chunked_sums(a, b, c, d, alpha, mass, mode, cb, par, out):
+    """:func:`_sums_range` over the fixed chunks ``cb`` (on threads with ``par``), the chunks' partial sums then
+    added in chunk order: the same numbers at every thread count."""
+    if par:
+        _psums(a, b, c, d, alpha, mass, mode, cb, out)
+    else:
+        for ch in range(len(cb) - 1):
+            out[ch, 0], out[ch, 1], out[ch, 2] = _sums_range(a, b, c, d, alpha, mass, mode, cb[ch], cb[ch + 1])
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    for ch in range(len(cb) - 1):
+        s0 += out[ch, 0]
+        s1 += out[ch, 1]
+        s2 += out[ch, 2]
+    return s0, s1, s2
+
+
+@njit(cache=True, fastmath={"contract"})
+def _dot_any(a, b, cb, par, out):
+    """``a.b``: one serial sum with no chunks ``cb``, else :func:`_chunked_sums`."""
+    if len(cb) == 0:
+        return _dot(a, b)
+    return _chunked_sums(a, b, a, a, 0.0, a[:0], 0, cb, par, out)[0]
+
+
+@njit(cache=True, fastmath={"contract"})
+def _dot2_any(p, q, cb, par, out):
+    """``(p.q, p.p)``: :func:`_dot2`, or chunked (:func:`_dot_any`)."""
+    if len(cb) == 0:
+        return _dot2(p, q)
+    s0, s1, _ = _chunked_sums(p, q, p, p, 0.0, p[:0], 1, cb, par, out)
+    return s0, s1
+
+
+@njit(cache=True, fastmath={"contract"})
+def _cg_update_any(dv, r, p, q, alpha, mass, use_mass, cb, par, out):
+    """:func:`_cg_update`, or chunked (:func:`_dot_any`)."""
+    if len(cb) == 0:
+        return _cg_update(dv, r, p, q, alpha, mass, use_mass)
+    return _chunked_sums(dv, r, p, q, alpha, mass if use_mass else mass[:0], 2, cb, par, out)
+
+
 @njit(cache=True, fastmath={"contract"}, parallel=True)
 def _pp_update(p, s, beta):
     for k in prange(len(p)):
@@ -548,7 +656,8 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
 @njit(cache=True, fastmath={"contract"})
 def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, Sc, dinv,
         pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
-        b, z, guess, use_guess, mass, use_mass, tol, max_iterations, bound_only, min_delay, delay_fraction):
+        b, z, guess, use_guess, mass, use_mass, tol, max_iterations, bound_only, min_delay, delay_fraction,
+        sum_chunks):
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
 
     ``adg``, ``auI``, ``auJ``, ``auv``: the fine matrix (unfiltered, float64, symmetric storage of
@@ -557,6 +666,10 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     then ``vu6`` (else ``vu6`` is ``au6``). ``lpar``, ...: the threads' chunks (:func:`vcycle`); CG's
     products and its updates without a sum run on threads when the finest level's do, its dot products
     serially, so the iterates are the same whatever the number of threads.
+
+    ``sum_chunks``: fixed bounds of the chunks CG's dot products are summed over (each chunk's partial sum,
+    on threads when the finest level's passes are, then the partials in order: the same numbers at every
+    thread count); empty for one plain serial sum.
 
     Returns ``(dv, iterations, residual, converged, error)``.
     """
@@ -578,7 +691,9 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     _msymmv(adg, auI, auJ, auv, au6, False, part, dv, r)
     _sub(b, r, par)
     filter_vec(clist, Sc, r)
-    norm0 = np.sqrt(_dot(r, r))
+    cb = sum_chunks
+    sums = np.zeros((max(len(cb) - 1, 0), 3))
+    norm0 = np.sqrt(_dot_any(r, r, cb, par, sums))
     if use_guess:
         g = guess.copy()
         filter_vec(clist, Sc, g)
@@ -595,7 +710,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     filter_vec(clist, Sc, s)
     p = s.copy()
     q = np.empty(N)
-    delta = _dot(r, s)
+    delta = _dot_any(r, s, cb, par, sums)
     delta0 = delta
     ad = np.zeros(max_iterations)
     pw = np.zeros(max_iterations)
@@ -605,11 +720,11 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     while not converged and delta > 0.0 and it < max_iterations:
         # p is filtered, so S A S p + (I - S) p = S A p: the filtered product
         _fsymmv(adg, auI, auJ, auv, au6, use6, clist, Sc, ws, p, q, part)
-        pq, pp = _dot2(p, q)
+        pq, pp = _dot2_any(p, q, cb, par, sums)
         if pq <= 0.0:
             break
         alpha = delta / pq
-        dd, rmr, dmd = _cg_update(dv, r, p, q, alpha, mass, use_mass)
+        dd, rmr, dmd = _cg_update_any(dv, r, p, q, alpha, mass, use_mass, cb, par, sums)
         ad[it] = alpha * delta
         pw[it] = pp / pq
         it += 1
@@ -617,7 +732,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
                pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
            wb, wx, wr)
         filter_vec(clist, Sc, s)
-        delta_new = _dot(r, s)
+        delta_new = _dot_any(r, s, cb, par, sums)
         if delta_new < -1e-30 * delta0:     # breakdown: the preconditioner is not positive definite
             break
         if delta_new <= 1e-30 * delta0:
@@ -638,7 +753,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     _msymmv(adg, auI, auJ, auv, au6, False, part, dv, q)
     _sub(b, q, par)
     filter_vec(clist, Sc, q)
-    res = np.sqrt(_dot(q, q)) / norm0
+    res = np.sqrt(_dot_any(q, q, cb, par, sums)) / norm0
     return dv, it, res, converged, error
 
 

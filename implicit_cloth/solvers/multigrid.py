@@ -553,8 +553,30 @@ FLOAT32_MIN_VERTICES: int | None = 32768
 
 
 #: Levels with at least this many vertices run their passes on threads when more than one is allowed
-#: (:func:`implicit_cloth.backend.threads`); below it a parallel region costs more than it saves.
-THREAD_MIN_VERTICES = 16384
+#: (:func:`implicit_cloth.backend.threads`) and numba's threading layer is GNU OpenMP's (see
+#: :mod:`implicit_cloth.kernels.layer`); below it a parallel region costs more than it saves. Measured
+#: (``python benchmarks/threads_layer.py``, 2026-12-06, the hanging peer scene one step a frame, 2 threads
+#: against 1): from 1024 vertices 1.30 / 1.58 / 1.59x at 64² / 128² / 256², where from 16384 the 64² cloth
+#: gained nothing and 128² 1.3x.
+THREAD_MIN_VERTICES = 1024
+#: The same threshold under TBB's layer or numba's work queue, where a second thread joins a short region late
+#: (from 1024 vertices two threads took 2.1x / 1.6x one's time at 64², 0.87x / 1.1x at 128²).
+THREAD_MIN_VERTICES_OTHER_LAYERS = 16384
+
+
+def thread_min_vertices() -> int:
+    """The smallest level run on threads, for the threading layer this process runs (launched if need be)."""
+    from ..kernels import layer
+
+    if layer.launch() == "omp":
+        return THREAD_MIN_VERTICES
+    return max(THREAD_MIN_VERTICES, THREAD_MIN_VERTICES_OTHER_LAYERS)
+#: From this many fine vertices CG's dot products are summed over THREAD_CHUNKS fixed chunks, whatever the
+#: thread count (the partial sums on threads when the finest level's passes are, then added in order), so
+#: that they can run on threads and still give the same numbers at every thread count; smaller cloths keep
+#: one plain serial sum (the numbers they always had). At 256² on two threads the serial sums were about a
+#: tenth of a CG iteration.
+CHUNKED_SUMS_MIN_VERTICES = 16384
 #: Chunks every threaded pass is cut into (fixed: the chunks, not the threads, decide what is summed where,
 #: so every thread count gives the same numbers).
 THREAD_CHUNKS = 8
@@ -734,15 +756,18 @@ class _FusedHierarchy:
         self.auI, self.auJ = self.uI[:u0], self.uJ[:u0]
 
     def _chunks(self, systems: list[SystemMatrix]) -> None:
-        """Every level's chunks for the threaded passes (levels below THREAD_MIN_VERTICES stay serial)."""
+        """Every level's chunks for the threaded passes: those of at least THREAD_MIN_VERTICES vertices (which
+        run on threads is decided per solve, :meth:`_threaded_levels`)."""
         K = THREAD_CHUNKS + 1
         L1 = len(systems)
+        tmin = THREAD_MIN_VERTICES
+        self._level_n = np.array([sm.n for sm in systems])
         self.lpar = np.zeros(L1, dtype=np.uint8)
         self.lpv = np.zeros(2 * L1 * K, dtype=np.int64)
         self.lpb = np.zeros(L1 * K, dtype=np.int64)
         lists, base = [], 0
         for l, sm in enumerate(systems):
-            if sm.n < THREAD_MIN_VERTICES:
+            if sm.n < tmin:
                 continue
             u0, u1 = self.uoff[l], self.uoff[l + 1]
             vb, kb, ip, ib = thread_chunks(sm.n, self.uI[u0:u1], self.uJ[u0:u1])
@@ -754,6 +779,17 @@ class _FusedHierarchy:
             base += len(ib)
         self.pbb = np.concatenate(lists) if lists else np.zeros(0, dtype=np.int32)
         self._serial = np.zeros(L1, dtype=np.uint8)
+
+    def _sum_chunks(self) -> np.ndarray:
+        """The fixed chunks CG's dot products are summed over (empty: one serial sum; CHUNKED_SUMS_MIN_VERTICES)."""
+        n = int(self._level_n[0])
+        if n < CHUNKED_SUMS_MIN_VERTICES:
+            return np.zeros(0, dtype=np.int64)
+        return np.linspace(0, 3 * n, THREAD_CHUNKS + 1).round().astype(np.int64)
+
+    def _threaded_levels(self) -> np.ndarray:
+        """``lpar`` for this process's threading layer: the chunked levels of at least :func:`thread_min_vertices`."""
+        return (self.lpar & (self._level_n >= thread_min_vertices())).astype(np.uint8)
 
     def _filter_arrays(self, filt: Filter) -> None:
         self.clist = np.concatenate([filt.fixed, filt.partial]).astype(np.int64)
@@ -772,7 +808,8 @@ class _FusedHierarchy:
             from ..kernels import smoothed as _smoothed
 
         flat = fine.blocks.reshape(-1)
-        par = fine.n >= THREAD_MIN_VERTICES and threads() > 1       # the copies on threads: the same numbers
+        tmin = thread_min_vertices() if threads() > 1 else None
+        par = tmin is not None and fine.n >= tmin       # the copies on threads: the same numbers
         if par or mg.smoothed:
             _set_numba_threads()
         gather = _fused.pgather_blocks if par else _fused.gather_blocks
@@ -821,7 +858,7 @@ class _FusedHierarchy:
             else:
                 args = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
                         self.uv[u1:u2].reshape(-1), gal[0], gal[1], gal[2], gal[3], gal[4], gal[5])
-                if par and v1 - v0 >= THREAD_MIN_VERTICES:   # on threads (one: slower than serial)
+                if tmin is not None and v1 - v0 >= tmin:     # on threads (one: slower than serial)
                     dsrc, dord, dcb, usrc, uord, ucb = self._gal_chunks(l - 1)
                     _fused.pgalerkin(args[0], args[1], args[2], args[3], dsrc, gal[1], gal[2], dord, dcb,
                                      usrc, gal[4], gal[5], uord, ucb)
@@ -898,7 +935,7 @@ class _FusedHierarchy:
         return PackedHierarchy(self.dg, self.uI, self.uJ, self.uv, self.vu6, self.use6, self.voff, self.uoff,
                                self.clist, self.Sc, self.ws, self.dinv, self.pptr, self.pidx, self.pval, self.poff,
                                self.pnnz, self.tptr, self.tidx, self.tval, self.toff, C, upper, self.mg.omega,
-                               self.lpar if threaded else self._serial, self.lpv, self.lpb, self.pbb)
+                               self._threaded_levels() if threaded else self._serial, self.lpv, self.lpb, self.pbb)
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         from ..kernels import pcg as _fused
@@ -929,7 +966,7 @@ class _FusedHierarchy:
             h.C, h.upper, h.omega, h.lpar, h.lpv, h.lpb, h.pbb,
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
             f(mass) if mass is not None else np.zeros(0), mass is not None, float(tol), int(max_iterations),
-            rule == "bound", int(min_delay), float(delay_fraction))
+            rule == "bound", int(min_delay), float(delay_fraction), self._sum_chunks())
         return dv, SolveResult(int(it), float(res), bool(conv), float(err))
 
 
