@@ -3,20 +3,24 @@
 The compiled solver's parallel regions are short (one level's pass of a V-cycle: 0.05-1.3 ms at 256²; a CG
 iteration opens about twenty). Whether a second thread helps depends on how soon it joins a region, which the
 threading layer decides: numba takes TBB's when ``libtbb`` is installed (Blender's Debian package installs it),
-else GNU OpenMP's, else its own work queue; ``implicit_cloth.kernels.layer`` now asks for OpenMP's first.
+else GNU OpenMP's, else its own work queue; ``implicit_cloth.kernels.layer`` now asks for OpenMP's first, its
+threads sleeping between regions (``OMP_WAIT_POLICY=PASSIVE``) rather than spinning first (libgomp's default,
+here ``omp-spin``: ``GOMP_SPINCOUNT=300000``).
 
-For each layer (its own processes: numba picks the layer once per process, at the first parallel region),
-alternating layers and thread counts within each repetition, this measures
+For each variant (its own processes: numba picks the layer once per process, at the first parallel region),
+alternating variants and thread counts within each repetition, this measures
 
 * a compute-bound region (20 fused multiply-adds an element, no memory traffic to speak of) of three lengths,
   on one and on two threads: what the layer's start-up and hand-out of the work cost;
 * the shared hanging scene (``vs_blender.py``'s, one linearised step a frame, the default solver) at each
-  size, ms a step on one and on two threads, and whether both give the same positions to the last bit.
+  size, ms a step on one and on two threads, and whether both give the same positions to the last bit;
+* with ``--busy`` (default on), the same steps while another process keeps one core busy (a Python loop):
+  what a second thread costs when the machine has no second core free.
 
 Usage::
 
-    python benchmarks/threads_layer.py                      # 64², 128², 256², 3 repetitions (~5 min)
-    python benchmarks/threads_layer.py --quick              # CI smoke: 32², one repetition
+    python benchmarks/threads_layer.py                      # 64², 128², 256², 3 repetitions (~15 min)
+    python benchmarks/threads_layer.py --quick              # CI smoke: 32², one repetition, no busy core
 
 Writes ``OUT/threads_layer.{json,md}`` (``OUT`` = ``benchmarks/results``, or ``--out``). Never asserts.
 """
@@ -34,7 +38,10 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-LAYERS = ("tbb", "omp", "workqueue")
+#: variant -> (numba layer, extra environment)
+VARIANTS = {"omp": ("omp", {}), "omp-spin": ("omp", {"GOMP_SPINCOUNT": "300000"}), "tbb": ("tbb", {}),
+            "workqueue": ("workqueue", {})}
+LAYERS = tuple(VARIANTS)
 REGION_SIZES = (20_000, 200_000, 2_000_000)
 
 
@@ -95,10 +102,21 @@ def _worker(args: list[str]) -> None:
     print("RESULT " + json.dumps({"result": out, "layer": layer.current()}))
 
 
-def _run(layer: str, args: list[str]) -> dict | None:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING_LAYER")}
-    env["NUMBA_THREADING_LAYER"] = layer
-    proc = subprocess.run([sys.executable, __file__, "--worker", *args], env=env, capture_output=True, text=True)
+def _run(variant: str, args: list[str], busy: bool = False) -> dict | None:
+    layer, extra = VARIANTS[variant]
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("NUMBA_THREADING_LAYER") and k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    env.update(NUMBA_THREADING_LAYER=layer, **extra)
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
+    try:
+        if hog is not None:
+            time.sleep(0.5)
+        proc = subprocess.run([sys.executable, __file__, "--worker", *args], env=env, capture_output=True,
+                              text=True)
+    finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
     for line in proc.stdout.splitlines():
         if line.startswith("RESULT "):
             res = json.loads(line[7:])
@@ -106,8 +124,8 @@ def _run(layer: str, args: list[str]) -> dict | None:
     return None                                           # the layer does not load here
 
 
-def _measure(layers: list[str], sizes: list[int], repeats: int, quick: bool) -> tuple[dict, dict]:
-    """Every (layer, size, threads) run, alternating within each repetition; the regions' runs per layer."""
+def _measure(layers: list[str], sizes: list[int], repeats: int, quick: bool, busy: bool) -> tuple[dict, dict]:
+    """Every (variant, size, threads, busy core) run, alternating within each repetition; the regions' runs."""
     regions: dict = {lay: [] for lay in layers}
     steps: dict = {}
     for rep in range(repeats):
@@ -117,29 +135,31 @@ def _measure(layers: list[str], sizes: list[int], repeats: int, quick: bool) -> 
                 if res:
                     regions[lay].append(res["result"])
             for n in sizes:
-                for th in (1, 2):
-                    k = 2 if quick else max(5, 40 * 64 * 64 // (n * n))
-                    res = _run(lay, ["step", str(n), str(th), str(k)])
-                    if res:
-                        steps.setdefault((lay, n, th), []).append(res["result"])
-                        print(f"[{rep + 1}/{repeats}] {lay} {n}² {th} thread(s): {res['result']['ms_step']:.1f} ms "
-                              "a step", file=sys.stderr)
+                for hog in ((False, True) if busy else (False,)):
+                    for th in (1, 2):
+                        k = 2 if quick else max(5, 40 * 64 * 64 // (n * n))
+                        res = _run(lay, ["step", str(n), str(th), str(k)], busy=hog)
+                        if res:
+                            steps.setdefault((lay, n, th, hog), []).append(res["result"])
+                            print(f"[{rep + 1}/{repeats}] {lay} {n}² {th} thread(s){', a core busy' if hog else ''}: "
+                                  f"{res['result']['ms_step']:.1f} ms a step", file=sys.stderr)
     return regions, steps
 
 
 def _summarise(layers: list[str], sizes: list[int], regions: dict, steps: dict) -> tuple[list, list]:
-    """Medians: the steps' rows (speed-up, same numbers) and the regions' rows."""
+    """Medians: the steps' rows (speed-up, same numbers; free and busy other core) and the regions' rows."""
     rows = []
-    for lay in layers:
-        for n in sizes:
-            one, two = steps.get((lay, n, 1), []), steps.get((lay, n, 2), [])
-            if not one or not two:
-                continue
-            m1 = statistics.median(r["ms_step"] for r in one)
-            m2 = statistics.median(r["ms_step"] for r in two)
-            same = len({r["digest"] for r in one + two}) == 1
-            rows.append({"layer": lay, "n": n, "ms_1": m1, "ms_2": m2, "speedup": m1 / m2, "same_numbers": same,
-                         "iterations": one[0]["iterations"], "runs": len(one)})
+    for hog in (False, True):
+        for lay in layers:
+            for n in sizes:
+                one, two = steps.get((lay, n, 1, hog), []), steps.get((lay, n, 2, hog), [])
+                if not one or not two:
+                    continue
+                m1 = statistics.median(r["ms_step"] for r in one)
+                m2 = statistics.median(r["ms_step"] for r in two)
+                same = len({r["digest"] for r in one + two}) == 1
+                rows.append({"layer": lay, "n": n, "busy_core": hog, "ms_1": m1, "ms_2": m2, "speedup": m1 / m2,
+                             "same_numbers": same, "iterations": one[0]["iterations"], "runs": len(one)})
     region_rows = []
     for lay in layers:
         for k, n in enumerate(REGION_SIZES):
@@ -154,11 +174,13 @@ def _summarise(layers: list[str], sizes: list[int], regions: dict, steps: dict) 
 def _markdown(result: dict) -> str:
     rows, region_rows = result["rows"], result["regions"]
     md = [f"Two threads against one under each numba threading layer (median of {result['repeats']}; machine: "
-          f"{result['machine']['cpus']} cpus). The shared hanging scene, one step a frame, the default solver:", "",
-          "| layer | grid | 1 thread (ms/step) | 2 threads (ms/step) | speed-up | same numbers | CG its (last step) |",
-          "|---|---|---|---|---|---|---|"]
-    md += [f"| {r['layer']} | {r['n']}² | {r['ms_1']:.1f} | {r['ms_2']:.1f} | **{r['speedup']:.2f}** | "
-           f"{'yes' if r['same_numbers'] else 'NO'} | {r['iterations']} |" for r in rows]
+          f"{result['machine']['cpus']} cpus). The shared hanging scene, one step a frame, the default solver; "
+          "`omp`: OpenMP's threads sleeping between regions (the library's setting), `omp-spin`: spinning first "
+          "(libgomp's default). \"a core busy\": another process keeps one core busy meanwhile.", "",
+          "| layer | grid | other core | 1 thread (ms/step) | 2 threads (ms/step) | speed-up | same numbers | "
+          "CG its (last step) |", "|---|---|---|---|---|---|---|---|"]
+    md += [f"| {r['layer']} | {r['n']}² | {'busy' if r['busy_core'] else 'free'} | {r['ms_1']:.1f} | {r['ms_2']:.1f} | "
+           f"**{r['speedup']:.2f}** | {'yes' if r['same_numbers'] else 'NO'} | {r['iterations']} |" for r in rows]
     if region_rows:
         md += ["", "A compute-bound parallel region (20 multiply-adds an element):", "",
                "| layer | elements | 1 thread (ms) | 2 threads (ms) | speed-up |", "|---|---|---|---|---|"]
@@ -172,7 +194,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
     p.add_argument("--layers", nargs="+", default=list(LAYERS), choices=LAYERS)
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--quick", action="store_true", help="CI smoke: 32², one repetition")
+    p.add_argument("--quick", action="store_true", help="CI smoke: 32², one repetition, no busy core")
+    p.add_argument("--no-busy", action="store_true", help="leave out the runs with a core kept busy")
     p.add_argument("--out", type=Path, default=HERE / "results")
     p.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
@@ -185,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     sizes, repeats = ([32], 1) if a.quick else (a.sizes, a.repeats)
     probe = ["step", "8", "1", "1"] if a.quick else ["regions"]
     layers = [lay for lay in a.layers if _run(lay, probe) is not None]     # those that load here
-    regions, steps = _measure(layers, sizes, repeats, a.quick)
+    regions, steps = _measure(layers, sizes, repeats, a.quick, busy=not (a.quick or a.no_busy))
     rows, region_rows = _summarise(layers, sizes, regions, steps)
     result = {"benchmark": "threads_layer", "quick": a.quick, "machine": machine(), "repeats": repeats,
               "rows": rows, "regions": region_rows}

@@ -53,7 +53,7 @@ def threads() -> int:
     """Threads the compiled solver may use: :func:`set_threads`, else ``$IMPLICIT_CLOTH_THREADS``, else 1.
 
     Only the numba back-end uses more than one, and only on multigrid levels of at least
-    :func:`implicit_cloth.solvers.multigrid.thread_min_vertices` vertices (1024 under GNU OpenMP's threading
+    :func:`implicit_cloth.solvers.multigrid.thread_min_vertices` vertices (4096 under GNU OpenMP's threading
     layer, which the kernels ask numba for first, :mod:`implicit_cloth.kernels.layer`; 16384 under the others):
     the products, smoothing sweeps, transfers, CG's updates and, from 16384 fine vertices, its dot products,
     and the Galerkin refresh; the springs' assembly stays serial. The numbers are the same for every thread

@@ -593,8 +593,8 @@ def test_a_diagonal_refresh_still_solves_within_tolerance(preconditioner, accele
 @pytest.mark.skipif(not numba_available(), reason="numba not installed")
 def test_threading_layer_prefers_openmp_unless_the_user_chose():
     """The kernels ask numba for GNU OpenMP's layer first (short parallel regions scale under it, not under
-    TBB's); a layer named in the environment is kept; the run report says which ran (fresh processes: numba
-    chooses the layer once per process)."""
+    TBB's), its threads sleeping between regions; a layer or wait policy named in the environment is kept;
+    the run report says which layer ran (fresh processes: numba chooses the layer once per process)."""
     import os
     import subprocess
     import sys
@@ -606,8 +606,11 @@ def test_threading_layer_prefers_openmp_unless_the_user_chose():
             "sim = ic.Simulator(ic.Scene.from_dict({'cloth': {'resolution': [8, 8], 'mass': 0.1, 'pins': ['top_left']},"
             " 'simulation': {'dt': 0.01}}))\n"
             "rep = sim.run(duration=0.02).report['solver']\n"
-            "print(numba.config.THREADING_LAYER_PRIORITY, layer.current(), rep.get('threading_layer'))\n")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING_LAYER")}
+            "import os\n"
+            "print(numba.config.THREADING_LAYER_PRIORITY, os.environ.get('OMP_WAIT_POLICY'), layer.current(),"
+            " rep.get('threading_layer'))\n")
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("NUMBA_THREADING_LAYER") and k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
 
     def run(extra):
         out = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True)
@@ -615,7 +618,7 @@ def test_threading_layer_prefers_openmp_unless_the_user_chose():
         return out.stdout.split()[-2:], out.stdout
 
     (ran, reported), text = run({})
-    assert "['omp', 'tbb', 'workqueue']" in text
+    assert "['omp', 'tbb', 'workqueue'] PASSIVE" in text          # OpenMP's threads sleep between regions
     assert ran == reported and ran in ("omp", "tbb", "workqueue")
     try:
         from numba.np.ufunc import omppool  # noqa: F401
@@ -623,5 +626,5 @@ def test_threading_layer_prefers_openmp_unless_the_user_chose():
         pass
     else:
         assert ran == "omp"
-    (ran, reported), _ = run({"NUMBA_THREADING_LAYER": "workqueue"})
-    assert ran == reported == "workqueue"
+    (ran, reported), text = run({"NUMBA_THREADING_LAYER": "workqueue", "OMP_WAIT_POLICY": "ACTIVE"})
+    assert ran == reported == "workqueue" and " ACTIVE " in text      # the user's choices kept

@@ -4,12 +4,16 @@ The kernels' parallel regions are short: one level's pass of a V-cycle takes 0.0
 CG iteration opens about twenty of them. Measured on the 2-core test machine (2026-12-06, numba 0.68; ``python
 benchmarks/threads_layer.py``): under TBB's layer (numba's first choice when ``libtbb`` is installed, as
 Blender's Debian package installs it) a second thread joined a 0.15 ms region too late to take any of its
-work, so short regions ran no faster on two threads than on one; under OpenMP's, whose threads wait
-spinning a moment before they sleep, the same region ran twice as fast. So, unless the user chose a layer
+work, so short regions ran no faster on two threads than on one; under OpenMP's the same region ran 1.5
+times as fast with its threads sleeping between regions (as they do here, below), twice as fast with them
+spinning. So, unless the user chose a layer
 (``NUMBA_THREADING_LAYER`` or ``NUMBA_THREADING_LAYER_PRIORITY`` in the environment, or
 ``numba.config.THREADING_LAYER`` set before), numba tries ``omp``, then ``tbb``, then ``workqueue``, and
 takes the first that loads. This is set on import of :mod:`implicit_cloth.kernels.pcg`, before any of
 its parallel regions can launch the layer (numba chooses it at the first one, once per process).
+
+Its threads wait for work sleeping (``OMP_WAIT_POLICY=PASSIVE``, unless the user set a policy): spinning,
+two threads became nine times slower than one whenever the other core was busy (see :data:`WAIT_POLICY`).
 
 GNU OpenMP is not fork-safe: a process that ran a parallel region and then forks must not run one in the
 child (numba stops such a child). The batch runner starts its workers by ``spawn``; a program that forks
@@ -29,6 +33,16 @@ PRIORITY = ["omp", "tbb", "workqueue"]
 _ENV = ("NUMBA_THREADING_LAYER", "NUMBA_THREADING_LAYER_PRIORITY")
 if not any(os.environ.get(k) for k in _ENV) and config.THREADING_LAYER == "default":  # type: ignore[attr-defined]
     config.THREADING_LAYER_PRIORITY = list(PRIORITY)  # type: ignore[attr-defined]
+
+#: GNU OpenMP's threads wait at a region's end by sleeping, unless the user set a policy
+#: (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT``). libgomp's own default spins first: with the other core busy
+#: (another process, a second batch worker) each of the V-cycle's regions then waited for a descheduled
+#: spinning thread, and two threads took 9 times one thread's time (128² peer scene: 450 against 48 ms a
+#: step); sleeping, 52 against 48, while on free cores it costs 3-10 % of the gain (30.4 against 27.8 ms).
+#: Read by libgomp when it loads (numba's first parallel region); no effect if it was loaded before.
+WAIT_POLICY = "PASSIVE"
+if not os.environ.get("OMP_WAIT_POLICY") and not os.environ.get("GOMP_SPINCOUNT"):
+    os.environ["OMP_WAIT_POLICY"] = WAIT_POLICY
 
 
 @njit(parallel=True, cache=True)

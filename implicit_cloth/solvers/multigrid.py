@@ -555,10 +555,12 @@ FLOAT32_MIN_VERTICES: int | None = 32768
 #: Levels with at least this many vertices run their passes on threads when more than one is allowed
 #: (:func:`implicit_cloth.backend.threads`) and numba's threading layer is GNU OpenMP's (see
 #: :mod:`implicit_cloth.kernels.layer`); below it a parallel region costs more than it saves. Measured
-#: (``python benchmarks/threads_layer.py``, 2026-12-06, the hanging peer scene one step a frame, 2 threads
-#: against 1): from 1024 vertices 1.30 / 1.58 / 1.59x at 64² / 128² / 256², where from 16384 the 64² cloth
-#: gained nothing and 128² 1.3x.
-THREAD_MIN_VERTICES = 1024
+#: (2026-12-06, the hanging peer scene one step a frame, 2 threads against 1): with OpenMP's threads spinning
+#: between regions, from 1024 vertices 1.30 / 1.58 / 1.59x at 64² / 128² / 256² (CG's sums still serial;
+#: from 16384, 1.0 / 1.3x at 64² / 128²); with them sleeping, as the library sets them, each region pays a
+#: wake-up and from 1024 vertices the 32² cloth took 3.4-3.9 ms a step on two threads against 2.4-3.0 on one,
+#: the 256² cloth 212-234 against 184-216 from 4096.
+THREAD_MIN_VERTICES = 4096
 #: The same threshold under TBB's layer or numba's work queue, where a second thread joins a short region late
 #: (from 1024 vertices two threads took 2.1x / 1.6x one's time at 64², 0.87x / 1.1x at 128²).
 THREAD_MIN_VERTICES_OTHER_LAYERS = 16384
@@ -571,6 +573,8 @@ def thread_min_vertices() -> int:
     if layer.launch() == "omp":
         return THREAD_MIN_VERTICES
     return max(THREAD_MIN_VERTICES, THREAD_MIN_VERTICES_OTHER_LAYERS)
+
+
 #: From this many fine vertices CG's dot products are summed over THREAD_CHUNKS fixed chunks, whatever the
 #: thread count (the partial sums on threads when the finest level's passes are, then added in order), so
 #: that they can run on threads and still give the same numbers at every thread count; smaller cloths keep
