@@ -4,9 +4,8 @@ The kernels' parallel regions are short: one level's pass of a V-cycle takes 0.0
 CG iteration opens about twenty of them. Measured on the 2-core test machine (2026-12-06, numba 0.68; ``python
 benchmarks/threads_layer.py``): under TBB's layer (numba's first choice when ``libtbb`` is installed, as
 Blender's Debian package installs it) a second thread joined a 0.15 ms region too late to take any of its
-work, so short regions ran no faster on two threads than on one; under OpenMP's the same region ran 1.5
-times as fast with its threads sleeping between regions (as they do here, below), twice as fast with them
-spinning. So, unless the user chose a layer
+work, so short regions ran no faster on two threads than on one; under OpenMP's the same region ran twice
+as fast. So, unless the user chose a layer
 (``NUMBA_THREADING_LAYER`` or ``NUMBA_THREADING_LAYER_PRIORITY`` in the environment, or
 ``numba.config.THREADING_LAYER`` set before), numba tries ``omp``, then ``tbb``, then ``workqueue``, and
 takes the first that loads. This is set on import of :mod:`implicit_cloth.kernels.pcg`, before any of
@@ -38,7 +37,8 @@ if not any(os.environ.get(k) for k in _ENV) and config.THREADING_LAYER == "defau
 #: (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT``). libgomp's own default spins first: with the other core busy
 #: (another process, a second batch worker) each of the V-cycle's regions then waited for a descheduled
 #: spinning thread, and two threads took 9 times one thread's time (128² peer scene: 450 against 48 ms a
-#: step); sleeping, 52 against 48, while on free cores it costs 3-10 % of the gain (30.4 against 27.8 ms).
+#: step); sleeping, 52 against 48, while on free cores it is 4-8 % slower than spinning (30.4 against 27.8 ms;
+#: ``benchmarks/results/threads_layer.md``).
 #: Read by libgomp when it loads (numba's first parallel region); no effect if it was loaded before.
 WAIT_POLICY = "PASSIVE"
 if not os.environ.get("OMP_WAIT_POLICY") and not os.environ.get("GOMP_SPINCOUNT"):

@@ -403,38 +403,19 @@ def _smooth(dinv, omega, b, x, y, par):
 @njit(cache=True, fastmath={"contract"})
 def _dot2(p, q):
     """``(p.q, p.p)``."""
-    pq = 0.0
-    pp = 0.0
-    for k in range(len(p)):
-        pq += p[k] * q[k]
-        pp += p[k] * p[k]
-    return pq, pp
+    s0, s1, _ = _sums_range(p, q, p, p, 0.0, p[:0], 1, 0, len(p))
+    return s0, s1
 
 
 @njit(cache=True, fastmath={"contract"})
 def _dot(a, b):
-    s = 0.0
-    for k in range(len(a)):
-        s += a[k] * b[k]
-    return s
+    return _sums_range(a, b, a, a, 0.0, a[:0], 0, 0, len(a))[0]
 
 
 @njit(cache=True, fastmath={"contract"})
 def _cg_update(dv, r, p, q, alpha, mass, use_mass):
     """``dv += alpha p``, ``r -= alpha q``; returns ``(dv.dv, r.M^-1 r, dv.M dv)`` (the last two with ``use_mass``)."""
-    dd = 0.0
-    rmr = 0.0
-    dmd = 0.0
-    for k in range(len(dv)):
-        d = dv[k] + alpha * p[k]
-        rk = r[k] - alpha * q[k]
-        dv[k] = d
-        r[k] = rk
-        dd += d * d
-        if use_mass:
-            rmr += rk * rk / mass[k]
-            dmd += d * d * mass[k]
-    return dd, rmr, dmd
+    return _sums_range(dv, r, p, q, alpha, mass if use_mass else mass[:0], 2, 0, len(dv))
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
@@ -457,23 +438,17 @@ def _sums_range(a, b, c, d, alpha, mass, mode, lo, hi):
     else:
         pc = c[lo:hi]
         qd = d[lo:hi]
-        if len(mass):
-            m = mass[lo:hi]
-            for k in range(len(x)):
-                u = x[k] + alpha * pc[k]
-                w = y[k] - alpha * qd[k]
-                x[k] = u
-                y[k] = w
-                s0 += u * u
+        weighted = len(mass) > 0
+        m = mass[lo:hi] if weighted else mass
+        for k in range(len(x)):
+            u = x[k] + alpha * pc[k]
+            w = y[k] - alpha * qd[k]
+            x[k] = u
+            y[k] = w
+            s0 += u * u
+            if weighted:
                 s1 += w * w / m[k]
                 s2 += u * u * m[k]
-        else:
-            for k in range(len(x)):
-                u = x[k] + alpha * pc[k]
-                w = y[k] - alpha * qd[k]
-                x[k] = u
-                y[k] = w
-                s0 += u * u
     return s0, s1, s2
 
 
