@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import importlib.util
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -82,6 +84,18 @@ def set_threads(n: int | None) -> None:
     if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
         raise ValueError(f"threads: must be an integer >= 1, got {n!r}")
     _threads = n
+
+
+@contextmanager
+def using_threads(n: int | None) -> Iterator[None]:
+    """:func:`set_threads` for the duration of a ``with`` block, the setting before restored after it."""
+    global _threads
+    before = _threads
+    set_threads(n)
+    try:
+        yield
+    finally:
+        _threads = before
 
 
 def resolve(name: str | None = None) -> str:

@@ -57,6 +57,7 @@ from pathlib import Path
 from typing import Any, NoReturn, Sequence
 
 from . import __version__
+from .backend import using_threads
 from .errors import DivergenceError, InputError
 from .files import write_run
 from .integrators import INTEGRATORS
@@ -113,6 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="override simulation.duration, s")
     run.add_argument("--frame-rate", metavar="HZ", type=float, default=None, dest="frame_rate",
                      help="override simulation.frame_rate, kept frames per simulated second")
+    run.add_argument("--threads", metavar="N", type=int, default=None,
+                     help="threads of the compiled solver (the fast extra; default: $IMPLICIT_CLOTH_THREADS, "
+                          "else 1); the same numbers at every count")
     run.add_argument("--no-progress", action="store_true",
                      help="no progress bar (it is only shown when stderr is a terminal)")
     run.add_argument("--strict", action="store_true",
@@ -291,6 +295,16 @@ def _section_lines(r: RunReport) -> list[str]:
 # --------------------------------------------------------------------------- run
 def cmd_run(args: argparse.Namespace) -> int:
     """``implicit-cloth run``: simulate, write outputs, print a summary."""
+    if args.threads is None:
+        return _cmd_run(args)
+    if args.threads < 1:
+        _error(f"--threads: must be an integer >= 1, got {args.threads}")
+        return EXIT_BAD_INPUT
+    with using_threads(args.threads):
+        return _cmd_run(args)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
     debug = bool(args.debug)
     scene_path = Path(args.scene)
     out = Path(args.out) if args.out is not None else Path("out") / scene_path.stem

@@ -245,3 +245,19 @@ def test_solver_line_says_newton_corrections_are_solved_looser(tmp_path, capsys)
         assert (report["solver"]["max_newton_iterations"] > 1) == (newton > 1)
     assert f"Newton corrections included: those are solved to {NEWTON_FORCING:g}" in lines[4]
     assert "Newton" not in lines[1]
+
+
+def test_threads_option_is_recorded_checked_and_restored(tmp_path, capsys):
+    """``--threads N`` runs the compiled solver on N threads for that run (the report says so), is checked
+    like every option, and leaves the process's setting as it was."""
+    from implicit_cloth import backend
+
+    scene = write(tmp_path, SMALL)
+    before = backend.threads()
+    assert run(str(scene), "--out", str(tmp_path / "o"), "--threads", "0") == 2
+    assert capsys.readouterr().err.splitlines() == ["implicit-cloth: error: --threads: must be an integer >= 1, got 0"]
+    assert run(str(scene), "--out", str(tmp_path / "o"), "--threads", "2", "--duration", "0.05") == 0
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    if report["solver"]["accelerator"] == "numba":
+        assert report["solver"]["threads"] == 2
+    assert backend.threads() == before
