@@ -472,7 +472,7 @@ def test_threads_give_the_same_numbers_and_match_a_direct_solve(monkeypatch, vcy
             mg.setup(None, filt)
             assert mg.engine.lpar.all() and mg.engine.vu6.dtype == np.dtype(vcycle if vcycle != "chunked sums"
                                                                             else "float64")
-            assert len(mg.engine._sum_chunks()) == (9 if vcycle == "chunked sums" else 0)
+            assert len(mg.engine.sum_chunks) == (9 if vcycle == "chunked sums" else 0)
             r = filt.apply(np.random.default_rng(2).standard_normal(b.shape))
             v = mg.apply(r)
             dv, res = filtered_pcg(m.system.csr, b, z, filt, mg, tol=1e-4, mass=np.repeat(m.masses, 3))

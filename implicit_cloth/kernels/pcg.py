@@ -37,7 +37,7 @@ chunks, each writing only its own rows (:func:`_psymmv`: a stored block between 
 both, each taking its side), so the numbers are the same, to the last bit, for every thread count and
 as serially. CG's dot products are one serial sum on small cloths; from
 ``multigrid.CHUNKED_SUMS_MIN_VERTICES`` fine vertices they are summed over fixed chunks at every thread
-count (:func:`_chunked_sums`), the partial sums on threads, so they too give the same numbers whatever the
+count (:func:`_sums`), the partial sums on threads, so they too give the same numbers whatever the
 thread count. The parallel regions run on numba's threading layer as :mod:`.layer` chooses it.
 """
 
@@ -400,24 +400,6 @@ def _smooth(dinv, omega, b, x, y, par):
             _smooth_row(dinv, omega, b, x, y, i)
 
 
-@njit(cache=True, fastmath={"contract"})
-def _dot2(p, q):
-    """``(p.q, p.p)``."""
-    s0, s1, _ = _sums_range(p, q, p, p, 0.0, p[:0], 1, 0, len(p))
-    return s0, s1
-
-
-@njit(cache=True, fastmath={"contract"})
-def _dot(a, b):
-    return _sums_range(a, b, a, a, 0.0, a[:0], 0, 0, len(a))[0]
-
-
-@njit(cache=True, fastmath={"contract"})
-def _cg_update(dv, r, p, q, alpha, mass, use_mass):
-    """``dv += alpha p``, ``r -= alpha q``; returns ``(dv.dv, r.M^-1 r, dv.M dv)`` (the last two with ``use_mass``)."""
-    return _sums_range(dv, r, p, q, alpha, mass if use_mass else mass[:0], 2, 0, len(dv))
-
-
 @njit(cache=True, fastmath={"contract"}, inline="always")
 def _sums_range(a, b, c, d, alpha, mass, mode, lo, hi):
     """Chunk ``lo:hi`` of the CG sums (views from 0: no wraparound test). ``mode`` 0: ``(a.b, 0, 0)``;
@@ -459,9 +441,12 @@ def _psums(a, b, c, d, alpha, mass, mode, cb, out):
 
 
 @njit(cache=True, fastmath={"contract"})
-def _chunked_sums(a, b, c, d, alpha, mass, mode, cb, par, out):
-    """:func:`_sums_range` over the fixed chunks ``cb`` (on threads with ``par``), the chunks' partial sums then
-    added in chunk order: the same numbers at every thread count."""
+def _sums(a, b, c, d, alpha, mass, mode, cb, par, out):
+    """:func:`_sums_range` over the whole vectors: one serial sum with no chunks ``cb``, else over the fixed
+    chunks ``cb`` (on threads with ``par``; partial sums in ``out``), the partials then added in chunk order:
+    the same numbers at every thread count."""
+    if len(cb) == 0:
+        return _sums_range(a, b, c, d, alpha, mass, mode, 0, len(a))
     if par:
         _psums(a, b, c, d, alpha, mass, mode, cb, out)
     else:
@@ -478,28 +463,23 @@ def _chunked_sums(a, b, c, d, alpha, mass, mode, cb, par, out):
 
 
 @njit(cache=True, fastmath={"contract"})
-def _dot_any(a, b, cb, par, out):
-    """``a.b``: one serial sum with no chunks ``cb``, else :func:`_chunked_sums`."""
-    if len(cb) == 0:
-        return _dot(a, b)
-    return _chunked_sums(a, b, a, a, 0.0, a[:0], 0, cb, par, out)[0]
+def _dot(a, b, cb, par, out):
+    """``a.b`` (:func:`_sums`)."""
+    return _sums(a, b, a, a, 0.0, a[:0], 0, cb, par, out)[0]
 
 
 @njit(cache=True, fastmath={"contract"})
-def _dot2_any(p, q, cb, par, out):
-    """``(p.q, p.p)``: :func:`_dot2`, or chunked (:func:`_dot_any`)."""
-    if len(cb) == 0:
-        return _dot2(p, q)
-    s0, s1, _ = _chunked_sums(p, q, p, p, 0.0, p[:0], 1, cb, par, out)
+def _dot2(p, q, cb, par, out):
+    """``(p.q, p.p)`` (:func:`_sums`)."""
+    s0, s1, _ = _sums(p, q, p, p, 0.0, p[:0], 1, cb, par, out)
     return s0, s1
 
 
 @njit(cache=True, fastmath={"contract"})
-def _cg_update_any(dv, r, p, q, alpha, mass, use_mass, cb, par, out):
-    """:func:`_cg_update`, or chunked (:func:`_dot_any`)."""
-    if len(cb) == 0:
-        return _cg_update(dv, r, p, q, alpha, mass, use_mass)
-    return _chunked_sums(dv, r, p, q, alpha, mass if use_mass else mass[:0], 2, cb, par, out)
+def _cg_update(dv, r, p, q, alpha, mass, use_mass, cb, par, out):
+    """``dv += alpha p``, ``r -= alpha q``; returns ``(dv.dv, r.M^-1 r, dv.M dv)`` (the last two with ``use_mass``;
+    :func:`_sums`)."""
+    return _sums(dv, r, p, q, alpha, mass if use_mass else mass[:0], 2, cb, par, out)
 
 
 @njit(cache=True, fastmath={"contract"}, parallel=True)
@@ -639,8 +619,8 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     :func:`_symmv`) that CG multiplies by (its upper blocks from ``au6`` with ``use6``); the V-cycle's packed
     hierarchy (:func:`vcycle`) may hold its own (float32) copy of it as level 0, its six-number upper blocks
     then ``vu6`` (else ``vu6`` is ``au6``). ``lpar``, ...: the threads' chunks (:func:`vcycle`); CG's
-    products and its updates without a sum run on threads when the finest level's do, its dot products
-    serially, so the iterates are the same whatever the number of threads.
+    products and its updates without a sum run on threads when the finest level's do, its dot products as
+    ``sum_chunks`` says, so the iterates are the same whatever the number of threads.
 
     ``sum_chunks``: fixed bounds of the chunks CG's dot products are summed over (each chunk's partial sum,
     on threads when the finest level's passes are, then the partials in order: the same numbers at every
@@ -668,7 +648,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     filter_vec(clist, Sc, r)
     cb = sum_chunks
     sums = np.zeros((max(len(cb) - 1, 0), 3))
-    norm0 = np.sqrt(_dot_any(r, r, cb, par, sums))
+    norm0 = np.sqrt(_dot(r, r, cb, par, sums))
     if use_guess:
         g = guess.copy()
         filter_vec(clist, Sc, g)
@@ -685,7 +665,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     filter_vec(clist, Sc, s)
     p = s.copy()
     q = np.empty(N)
-    delta = _dot_any(r, s, cb, par, sums)
+    delta = _dot(r, s, cb, par, sums)
     delta0 = delta
     ad = np.zeros(max_iterations)
     pw = np.zeros(max_iterations)
@@ -695,11 +675,11 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     while not converged and delta > 0.0 and it < max_iterations:
         # p is filtered, so S A S p + (I - S) p = S A p: the filtered product
         _fsymmv(adg, auI, auJ, auv, au6, use6, clist, Sc, ws, p, q, part)
-        pq, pp = _dot2_any(p, q, cb, par, sums)
+        pq, pp = _dot2(p, q, cb, par, sums)
         if pq <= 0.0:
             break
         alpha = delta / pq
-        dd, rmr, dmd = _cg_update_any(dv, r, p, q, alpha, mass, use_mass, cb, par, sums)
+        dd, rmr, dmd = _cg_update(dv, r, p, q, alpha, mass, use_mass, cb, par, sums)
         ad[it] = alpha * delta
         pw[it] = pp / pq
         it += 1
@@ -707,7 +687,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
                pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
            wb, wx, wr)
         filter_vec(clist, Sc, s)
-        delta_new = _dot_any(r, s, cb, par, sums)
+        delta_new = _dot(r, s, cb, par, sums)
         if delta_new < -1e-30 * delta0:     # breakdown: the preconditioner is not positive definite
             break
         if delta_new <= 1e-30 * delta0:
@@ -728,7 +708,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     _msymmv(adg, auI, auJ, auv, au6, False, part, dv, q)
     _sub(b, q, par)
     filter_vec(clist, Sc, q)
-    res = np.sqrt(_dot_any(q, q, cb, par, sums)) / norm0
+    res = np.sqrt(_dot(q, q, cb, par, sums)) / norm0
     return dv, it, res, converged, error
 
 

@@ -764,14 +764,13 @@ class _FusedHierarchy:
         run on threads is decided per solve, :meth:`_threaded_levels`)."""
         K = THREAD_CHUNKS + 1
         L1 = len(systems)
-        tmin = THREAD_MIN_VERTICES
         self._level_n = np.array([sm.n for sm in systems])
         self.lpar = np.zeros(L1, dtype=np.uint8)
         self.lpv = np.zeros(2 * L1 * K, dtype=np.int64)
         self.lpb = np.zeros(L1 * K, dtype=np.int64)
         lists, base = [], 0
         for l, sm in enumerate(systems):
-            if sm.n < tmin:
+            if sm.n < THREAD_MIN_VERTICES:
                 continue
             u0, u1 = self.uoff[l], self.uoff[l + 1]
             vb, kb, ip, ib = thread_chunks(sm.n, self.uI[u0:u1], self.uJ[u0:u1])
@@ -783,13 +782,10 @@ class _FusedHierarchy:
             base += len(ib)
         self.pbb = np.concatenate(lists) if lists else np.zeros(0, dtype=np.int32)
         self._serial = np.zeros(L1, dtype=np.uint8)
-
-    def _sum_chunks(self) -> np.ndarray:
-        """The fixed chunks CG's dot products are summed over (empty: one serial sum; CHUNKED_SUMS_MIN_VERTICES)."""
-        n = int(self._level_n[0])
-        if n < CHUNKED_SUMS_MIN_VERTICES:
-            return np.zeros(0, dtype=np.int64)
-        return np.linspace(0, 3 * n, THREAD_CHUNKS + 1).round().astype(np.int64)
+        # the fixed chunks CG's dot products are summed over (empty: one serial sum; CHUNKED_SUMS_MIN_VERTICES)
+        n0 = systems[0].n
+        self.sum_chunks = (np.linspace(0, 3 * n0, THREAD_CHUNKS + 1).round().astype(np.int64)
+                           if n0 >= CHUNKED_SUMS_MIN_VERTICES else np.zeros(0, dtype=np.int64))
 
     def _threaded_levels(self) -> np.ndarray:
         """``lpar`` for this process's threading layer: the chunked levels of at least :func:`thread_min_vertices`."""
@@ -970,7 +966,7 @@ class _FusedHierarchy:
             h.C, h.upper, h.omega, h.lpar, h.lpv, h.lpb, h.pbb,
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
             f(mass) if mass is not None else np.zeros(0), mass is not None, float(tol), int(max_iterations),
-            rule == "bound", int(min_delay), float(delay_fraction), self._sum_chunks())
+            rule == "bound", int(min_delay), float(delay_fraction), self.sum_chunks)
         return dv, SolveResult(int(it), float(res), bool(conv), float(err))
 
 
