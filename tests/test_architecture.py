@@ -17,7 +17,7 @@ PKG = Path(__file__).resolve().parents[1] / "implicit_cloth"
 #: Bottom first. A module may import from its own layer (the graph must stay acyclic) or any lower one.
 #: A prefix ending in "*" stands for a package and everything in it.
 LAYERS: list[tuple[str, ...]] = [
-    ("errors", "materials", "kernels*", "interrupt"),
+    ("errors", "materials", "kernels*", "interrupt", "rowwise"),
     ("config*", "report", "backend"),
     ("files", "geometry", "obstacles", "objfile", "cloth"),
     ("scene",),

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..rowwise import max1, min1
+
 #: Candidate kinds (the keys of :func:`candidates`' result).
 VERTEX_PATH, EDGE_QUAD, TRIANGLE = 0, 2, 3
 
@@ -104,7 +106,7 @@ def candidates(index: TriangleIndex, p0: np.ndarray, p1: np.ndarray, verts: np.n
         if not len(prims):
             continue
         q = points()                                       # (K, m, 3): each primitive's points over the step
-        i, t = index.overlaps(q.min(axis=1) - r, q.max(axis=1) + r)
+        i, t = index.overlaps(min1(q) - r, max1(q) + r)
         if len(i):
             out[kind] = (verts[i] if kind == VERTEX_PATH else i, t)
     return out

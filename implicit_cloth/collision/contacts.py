@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from ..rowwise import max1, min1
 from . import broadphase, ccd
 from .context import near
 from .features import EDGE_FRACTION, edge_minimum
@@ -251,8 +252,8 @@ def _pairs_near(frame: Frame, shape, prims: np.ndarray, feats_lo: np.ndarray, fe
     nr = np.flatnonzero(near(shape, q0, q1, r))
     if not len(nr):
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    lo = np.minimum(q0[nr], q1[nr]).min(axis=1) - r
-    hi = np.maximum(q0[nr], q1[nr]).max(axis=1) + r
+    lo = np.minimum(min1(q0[nr]), min1(q1[nr])) - r
+    hi = np.maximum(max1(q0[nr]), max1(q1[nr])) + r
     m = np.all((lo[None] <= feats_hi[:, None]) & (hi[None] >= feats_lo[:, None]), axis=2)   # (F, K)
     fi, kj = np.nonzero(m)
     return nr[kj], fi

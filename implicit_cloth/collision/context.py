@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ..rowwise import all1, max1, min1
 from .shapes import MeshShape, Plane, RigidMotion, Shape, build, local_aabb
 
 
@@ -165,14 +166,19 @@ class Context:
 
 def near(shape: Shape, p0: np.ndarray, p1: np.ndarray, margin: float) -> np.ndarray:
     """Bool mask of swept boxes (rows of p0 -> p1, or (K, m, 3) primitives) near the shape's local box."""
+    same = p0 is p1                                   # a still box (a state, not a step)
     if isinstance(shape, Plane):
-        lo = np.minimum(p0, p1)[..., 2]
-        return lo.min(axis=-1) <= margin if lo.ndim > 1 else lo <= margin
+        if p0.ndim == 3:
+            z = min1(p0[..., 2]) if same else np.minimum(min1(p0[..., 2]), min1(p1[..., 2]))
+        else:
+            z = p0[:, 2] if same else np.minimum(p0[:, 2], p1[:, 2])
+        return z <= margin
     a, b = local_aabb(shape)
-    lo, hi = np.minimum(p0, p1), np.maximum(p0, p1)
-    if lo.ndim == 3:
-        lo, hi = lo.min(axis=1), hi.max(axis=1)
-    return np.all((lo <= b + margin) & (hi >= a - margin), axis=1)
+    if p0.ndim == 3:
+        lo, hi = (min1(p0), max1(p0)) if same else (np.minimum(min1(p0), min1(p1)), np.maximum(max1(p0), max1(p1)))
+    else:
+        lo, hi = (p0, p0) if same else (np.minimum(p0, p1), np.maximum(p0, p1))
+    return all1((lo <= b + margin) & (hi >= a - margin))
 
 
 def world_at(mo: RigidMotion, q: np.ndarray, n_loc: np.ndarray, tc: np.ndarray):

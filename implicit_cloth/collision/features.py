@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..rowwise import max1, min1
 from . import ccd
 from .context import Context, Obstacle, near
 from .response import SETTLE_FRACTION, spread
@@ -129,8 +130,8 @@ def features(ctx: Context, ob: Obstacle, x0, x, v, t0, t1, h):
         nr = np.flatnonzero(near(ob.shape, q0, q1, th))
         if not len(nr):
             continue
-        lo = np.minimum(q0[nr], q1[nr]).min(axis=1) - th
-        hi = np.maximum(q0[nr], q1[nr]).max(axis=1) + th
+        lo = np.minimum(min1(q0[nr]), min1(q1[nr])) - th
+        hi = np.maximum(max1(q0[nr]), max1(q1[nr])) + th
         if kind == "vf":
             flo = fhi = feats                      # (F, 3)
         else:

@@ -21,13 +21,15 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..rowwise import max1, min1
+
 
 def boxes(x0: np.ndarray, x1: np.ndarray, prims: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper corners (K, 3) of the boxes of primitives ``prims`` (K, m) over the step, inflated by
     ``reach`` (m)."""
     p0, p1 = x0[prims], x1[prims]
-    lo = np.minimum(p0.min(axis=1), p1.min(axis=1)) - reach
-    hi = np.maximum(p0.max(axis=1), p1.max(axis=1)) + reach
+    lo = np.minimum(min1(p0), min1(p1)) - reach
+    hi = np.maximum(max1(p0), max1(p1)) + reach
     return lo, hi
 
 
