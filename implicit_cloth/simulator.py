@@ -129,8 +129,8 @@ class Simulator:
             self.model = Model(scene)
             solver_opts = scene.data["solver"]
             if solver_opts.get("preconditioner") == "auto":   # the multigrid for this cloth and its contacts
-                contacts = bool(scene.data["obstacles"]) or self_collision(scene.data)
-                solver_opts = {**solver_opts, "preconditioner": auto_preconditioner(self.model, contacts)}
+                solver_opts = {**solver_opts, "preconditioner": auto_preconditioner(
+                    self.model, bool(scene.data["obstacles"]), self_collision(scene.data))}
             self.integrator = make_integrator(self.integrator_name, self.model, solver_opts)
         x = self.model.rest_positions.copy()
         v = self.model.initial_velocity.copy()

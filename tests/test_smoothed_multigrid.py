@@ -8,7 +8,8 @@ import scipy.sparse as sp
 from test_solvers import ACCELERATORS, NUMBA, H, _direct, _mesh_file, _scene, _system
 
 import implicit_cloth as ic
-from implicit_cloth.solvers import Filter, filtered_pcg, make_preconditioner, numba_available
+from implicit_cloth.integrators import StepInfo
+from implicit_cloth.solvers import Filter, filtered_pcg, make_preconditioner, numba_available, set_default_accelerator
 from implicit_cloth.solvers.multigrid import SMOOTH_P_OMEGA, grid_prolongations
 
 
@@ -207,14 +208,16 @@ def test_chunked_setup_kernels_give_the_serial_kernels_numbers():
             assert all(np.all(np.diff(order[cb[k]:cb[k + 1]]) > 0) for k in range(len(cb) - 1))
 
 
-def test_auto_smooths_large_free_grid_cloths_only(monkeypatch, tmp_path):
+def test_auto_smooths_large_grid_cloths_only(monkeypatch, tmp_path):
     """``solver.preconditioner = "auto"`` (the default) runs the smoothed multigrid for a grid cloth from
-    AUTO_SMOOTHED_MIN_VERTICES vertices without obstacles or self-collision, the plain one otherwise (smaller,
-    in contact, a mesh cloth, or named explicitly); the report names the one that ran."""
+    AUTO_SMOOTHED_MIN_VERTICES vertices, from AUTO_SMOOTHED_CONTACT_MIN_VERTICES among obstacles, never with
+    self-collision, the plain one otherwise (smaller, a mesh cloth, or named explicitly); the report names the
+    one that ran."""
     import implicit_cloth.solvers as solvers
     from implicit_cloth.scene import DEFAULTS
 
     assert DEFAULTS["solver"]["preconditioner"] == "auto" and solvers.AUTO_SMOOTHED_MIN_VERTICES == 128 * 128
+    assert solvers.AUTO_SMOOTHED_CONTACT_MIN_VERTICES == 64 * 64
 
     def ran(scene, **kw):
         return ic.Simulator(scene, dt=H, **kw).integrator.precond.name
@@ -224,10 +227,110 @@ def test_auto_smooths_large_free_grid_cloths_only(monkeypatch, tmp_path):
     assert ran(_scene(res=(12, 12))) == "multigrid_smoothed"
     assert ran(_scene(res=(9, 9))) == "multigrid"
     contact = dict(_scene(res=(12, 12)), obstacles=[{"shape": "sphere", "radius": 0.2, "center": [0, 0, -0.5]}])
-    assert ran(contact) == "multigrid"
+    assert ran(contact) == "multigrid"                                   # 144 < 4096 among obstacles
+    monkeypatch.setattr(solvers, "AUTO_SMOOTHED_CONTACT_MIN_VERTICES", 144)
+    assert ran(contact) == "multigrid_smoothed"
+    assert ran(dict(contact, cloth=dict(contact["cloth"], resolution=[11, 11]))) == "multigrid"
     selfc = dict(_scene(res=(12, 12)), collision={"self_collision": True})
     assert ran(selfc) == "multigrid"
     assert ran(_scene(res=(12, 12)), solver={"preconditioner": "multigrid"}) == "multigrid"
     assert ran(_scene(mesh=_mesh_file(tmp_path))) == "multigrid"          # 400 vertices, not a grid
     r = ic.Simulator(_scene(res=(12, 12)), dt=H).run(duration=0.05)
     assert r.report["solver"]["preconditioner"] == "multigrid_smoothed"
+
+
+def _drape(n, preconditioner, accelerator):
+    """The shared drape (benchmarks/vs_blender.py): a 1 m, 0.1 kg cloth dropped onto a sphere r = 0.3 m."""
+    springs = {"structural": {"stiffness": 1000.0, "damping": 0.01},
+               "shear": {"stiffness": 1000.0 / 3.0, "damping": 0.01}, "bend": {"stiffness": 10.0, "damping": 0.0}}
+    scene = ic.Scene.from_dict({
+        "simulation": {"integrator": "backward_euler", "dt": 1 / 60, "duration": 1.0, "frame_rate": 60},
+        "cloth": {"size": [1.0, 1.0], "resolution": [n, n], "mass": 0.1, "plane": "xy", "center": [0.0, 0.0, 0.5],
+                  "springs": springs},
+        "effects": {"gravity": [0.0, 0.0, -9.81]},
+        "obstacles": [{"shape": "sphere", "radius": 0.3, "center": [0.0, 0.0, 0.0], "friction": 0.3}],
+        "collision": {"thickness": 0.005},
+        "solver": {"preconditioner": preconditioner}})
+    set_default_accelerator(accelerator)
+    try:
+        return ic.Simulator(scene)
+    finally:
+        set_default_accelerator(None)
+
+
+def _level_dense(mg, l):
+    """Level ``l``'s matrix and its diagonal blocks, dense, from what the V-cycle reads."""
+    if mg.engine.__class__.__name__ == "_NumpyHierarchy":
+        A = mg._A[l].toarray()
+    else:
+        fh = mg.engine
+        n = int(fh.voff[l + 1] - fh.voff[l])
+        A4 = np.zeros((n, 3, n, 3))
+        i = np.arange(n)
+        A4[i, :, i, :] = fh.dg[fh.voff[l]:fh.voff[l + 1]]
+        u = slice(fh.uoff[l], fh.uoff[l + 1])
+        A4[fh.uI[u], :, fh.uJ[u], :] = fh.uv[u]
+        A4[fh.uJ[u], :, fh.uI[u], :] = fh.uv[u].transpose(0, 2, 1)
+        A = A4.reshape(3 * n, 3 * n)
+    n = A.shape[0] // 3
+    D = np.zeros_like(A)
+    for v in range(n):
+        D[3 * v:3 * v + 3, 3 * v:3 * v + 3] = A[3 * v:3 * v + 3, 3 * v:3 * v + 3]
+    return A, D
+
+
+@pytest.mark.parametrize("accelerator", ACCELERATORS)
+def test_coarse_smoothers_contract_where_the_fixed_damping_amplified(accelerator):
+    """A Galerkin level of the smoothed hierarchy can have ``lambda_max(D^-1 A)`` far above 2 (the 32² drape
+    landing on its sphere: about 4 on its 81-vertex level), where one block-Jacobi sweep damped by the fixed 0.7
+    multiplies the top mode by ``1 - 0.7 lambda < -1``: the V-cycle is then no CG preconditioner (on the 128²
+    drape CG broke down after 0-10 iterations). Protected (after a breakdown), each coarse level's damping
+    follows its estimated ``lambda_max`` (multigrid.SMOOTHER_RHO): against the level's eigenvalues computed
+    densely here, ``omega_l lambda_max < 2`` on every level of every setup of the landing."""
+    from scipy.linalg import eigh
+
+    from implicit_cloth.solvers.multigrid import SMOOTHER_RHO
+
+    sim = _drape(32, "multigrid_smoothed", accelerator)
+    mg = sim.integrator.precond
+    assert mg.smoothed and mg.n_levels >= 4 and not mg.damped
+    mg.damped = True                                # as after a breakdown (Multigrid.protect)
+    worst_fixed = worst = 0.0
+    for _ in range(30):                             # frames 0.40-0.90 s: the cloth lands and wraps the sphere
+        sim.step(1)
+        if sim.state.t < 0.4:
+            continue
+        for l in range(1, mg.n_levels - 1):
+            A, D = _level_dense(mg, l)
+            lam = eigh(A, D, eigvals_only=True, subset_by_index=[A.shape[0] - 1, A.shape[0] - 1])[0]
+            worst_fixed = max(worst_fixed, mg.omega * lam)
+            worst = max(worst, mg.level_omega[l] * lam)
+            assert mg.level_lambda[l] <= lam * (1 + 1e-9)            # the estimate: a lower bound
+            assert mg.level_omega[l] == min(mg.omega, SMOOTHER_RHO / mg.level_lambda[l])
+    assert worst_fixed > 2.3            # the premise: the fixed damping amplified on some level
+    assert worst < 2.0, worst
+
+
+@pytest.mark.parametrize("accelerator", ACCELERATORS)
+def test_a_breakdown_protects_the_multigrid_and_the_step_is_solved_again(accelerator):
+    """A CG breakdown (the V-cycle not positive definite) makes the integrator protect its multigrid (coarse
+    smoothers damped to their matrices from then on) and solve again: here the coarse smoothers' damping is
+    forced to 2.5 (a sweep multiplies the top modes by about -5) so that the unprotected V-cycle amplifies;
+    the step's solve then converges within the tolerance of a direct solve, the broken solve counted."""
+    sim = ic.Simulator(_scene(res=(20, 20)), dt=H, solver={"preconditioner": "multigrid"})
+    integ = sim.integrator
+    mg = integ.precond
+    sim.step(5)
+    m, A, b = _system(sim, steps=1)
+    filt = Filter(m.n, m.pinned)
+    z = np.zeros_like(b)
+    mg.setup(None, filt)
+    mg.level_omega[1:-1] = 2.5                       # the coarse smoothers amplify: CG breaks down
+    _, broken = filtered_pcg(m.system.csr, b, z, filt, mg, tol=1e-6, mass=np.repeat(m.masses, 3))
+    assert not broken.converged and broken.iterations < integ.max_iterations
+    info = StepInfo()
+    dv = integ._solve(m.system.csr, b.reshape(-1, 3), z.reshape(-1, 3), filt, info, tolerance=1e-6)
+    assert mg.damped and info.solves == 2 and info.converged
+    assert np.all(mg.level_omega[1:-1] * mg.level_lambda[1:-1] <= 1.75 + 1e-12)
+    ref = _direct(m.system.csr, b, z, filt)
+    assert np.linalg.norm(dv.reshape(-1) - ref) <= 1e-5 * np.linalg.norm(ref)

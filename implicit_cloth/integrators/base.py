@@ -564,11 +564,21 @@ class ImplicitIntegrator(Integrator):
         else:
             self.precond.setup(self.model.system, filt)
         t1 = time.perf_counter()
-        dv, res = filtered_pcg(A, b.reshape(-1), z.reshape(-1), filt, self.precond,
-                               self.tolerance if tolerance is None else tolerance, self.max_iterations,
-                               mass=self._mass3,
-                               rule=self.precond.stopping_rule,
-                               guess=None if guess is None else guess.reshape(-1))
+
+        def solve():
+            return filtered_pcg(A, b.reshape(-1), z.reshape(-1), filt, self.precond,
+                                self.tolerance if tolerance is None else tolerance, self.max_iterations,
+                                mass=self._mass3, rule=self.precond.stopping_rule,
+                                guess=None if guess is None else guess.reshape(-1))
+        dv, res = solve()
+        protect = getattr(self.precond, "protect", None)
+        if not res.converged and res.iterations < self.max_iterations and protect is not None and protect():
+            # CG broke down: the V-cycle is not positive definite (a coarse smoother amplifying); the multigrid
+            # now damps its coarse smoothers to their matrices (multigrid.SMOOTHER_RHO): solved again, the
+            # broken solve's iterations counted
+            info.iterations += res.iterations
+            info.solves += 1
+            dv, res = solve()                    # (its set-up again counted in the solve's time)
         info.t_setup += t1 - t0
         info.t_solve += time.perf_counter() - t1
         info.iterations += res.iterations

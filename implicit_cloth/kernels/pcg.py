@@ -551,7 +551,7 @@ def _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, l
 
 @njit(cache=True, fastmath={"contract"})
 def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
-           pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
+           pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
            wb, wx, wr):
     """One V-cycle of the filtered hierarchy: ``out = M^-1 b`` (``b`` the fine residual).
 
@@ -566,7 +566,8 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
     (local), entries ``pnnz[l]:pnnz[l+1]`` of ``pidx``/``pval``; its transpose likewise in
     ``t*`` (rows ``toff[l]:toff[l] + n_{l+1} + 1``, the same entry range). With 9 values an entry in
     ``pval``/``tval`` the transfers are 3x3 blocks (the smoothed prolongation; entry e at ``9 e``).
-    ``dinv[voff[l]:voff[l+1]]`` are level l's inverted (filtered) diagonal blocks.
+    ``dinv[voff[l]:voff[l+1]]`` are level l's inverted (filtered) diagonal blocks, ``omegas[l]`` its
+    smoother's damping (one damped block-Jacobi sweep before and one after the coarse correction).
 
     Threads: level l's passes run on threads when ``lpar[l]`` (its products chunked as in
     :func:`_psymmv`: ``lpv``/``lpb`` hold K chunk bounds and block-list offsets per level, the lists in
@@ -587,7 +588,7 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
         ti = tidx[pnnz[l]:pnnz[l + 1]]
         tv = tval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else tval[pnnz[l]:pnnz[l + 1]]
         par = bool(lpar[l])
-        _presmooth(d, omega, bl, x, par)
+        _presmooth(d, omegas[l], bl, x, par)
         _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, r, lpar, lpv, lpb, pbb)
         _sub(bl, r, par)
         _transfer(tp, ti, tv, r, wb[3 * voff[l + 1]:3 * voff[l + 2]], False, bool(lpar[l + 1]))
@@ -605,12 +606,67 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
         par = bool(lpar[l])
         _transfer(pp, pi, pv, xc, x, True, par)
         _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, lpar, lpv, lpb, pbb)
-        _smooth(d, omega, bl, x, y, par)
+        _smooth(d, omegas[l], bl, x, y, par)
+
+
+@njit(cache=True, fastmath={"contract"})
+def smoother_lanczos(l, dg, uI, uJ, uv, voff, uoff, dinv, q, alpha, beta):
+    """Lanczos on ``D^-1 A`` of the (unfiltered, coarse) level ``l`` in the ``D`` inner product, from ``q``
+    (overwritten), ``len(alpha)`` steps at most: the tridiagonal matrix's diagonal in ``alpha`` and its
+    off-diagonal in ``beta`` (``len(alpha) - 1`` long); returns the steps taken (fewer when an invariant subspace
+    ends it). Its largest eigenvalue estimates ``lambda_max(D^-1 A)`` from below. ``D``: the level's diagonal
+    blocks, ``dinv`` their inverses (all levels' packed arrays)."""
+    d, i, j, u = _lev(l, dg, uI, uJ, uv, voff, uoff)
+    dl = dinv[voff[l]:voff[l + 1]]
+    n = len(d)
+    m = 3 * n
+    qp = np.zeros(m)
+    aq = np.empty(m)
+    w = np.empty(m)
+    nq = np.sqrt(_dnorm2(d, q))
+    if not nq > 0.0:
+        return 0
+    for k in range(m):
+        q[k] /= nq
+    b = 0.0
+    steps = len(alpha)
+    for s in range(steps):
+        _symmv(d, i, j, u, q, aq)
+        a = 0.0
+        for k in range(m):
+            a += q[k] * aq[k]
+        alpha[s] = a
+        if s == steps - 1:
+            return steps
+        for v in range(n):
+            a0, a1, a2 = aq[3 * v], aq[3 * v + 1], aq[3 * v + 2]
+            for c in range(3):
+                k = 3 * v + c
+                w[k] = dl[v, c, 0] * a0 + dl[v, c, 1] * a1 + dl[v, c, 2] * a2 - a * q[k] - b * qp[k]
+        b = np.sqrt(_dnorm2(d, w))
+        if not b > 0.0:
+            return s + 1
+        beta[s] = b
+        for k in range(m):
+            qp[k] = q[k]
+            q[k] = w[k] / b
+    return steps
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _dnorm2(d, x):
+    """``x^T D x`` for the block diagonal ``D`` (blocks ``d``)."""
+    s = 0.0
+    for v in range(len(d)):
+        x0, x1, x2 = x[3 * v], x[3 * v + 1], x[3 * v + 2]
+        for c in range(3):
+            s += x[3 * v + c] * (d[v, c, 0] * x0 + d[v, c, 1] * x1 + d[v, c, 2] * x2)
+    return s
 
 
 @njit(cache=True, fastmath={"contract"})
 def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, Sc, dinv,
-        pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
+        pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
         b, z, guess, use_guess, mass, use_mass, tol, max_iterations, bound_only, min_delay, delay_fraction,
         sum_chunks):
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
@@ -660,7 +716,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
         return dv, 0, 0.0, True, 0.0
     s = np.empty(N)
     vcycle(r, s, dg, uI, uJ, uv, vu6, use6, voff, uoff, clist, Sc, ws, dinv,
-           pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
+           pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
            wb, wx, wr)
     filter_vec(clist, Sc, s)
     p = s.copy()
@@ -684,7 +740,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
         pw[it] = pp / pq
         it += 1
         vcycle(r, s, dg, uI, uJ, uv, vu6, use6, voff, uoff, clist, Sc, ws, dinv,
-               pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omega, lpar, lpv, lpb, pbb,
+               pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
            wb, wx, wr)
         filter_vec(clist, Sc, s)
         delta_new = _dot(r, s, cb, par, sums)

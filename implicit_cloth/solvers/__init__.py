@@ -14,23 +14,32 @@ PRECONDITIONERS.register("multigrid")
 PRECONDITIONERS.register("block_jacobi")
 PRECONDITIONERS.register("multigrid_smoothed")
 
-__all__ = ["AUTO_SMOOTHED_MIN_VERTICES", "BlockJacobi", "Filter", "SolveResult", "auto_preconditioner",
-           "filtered_pcg", "make_preconditioner", "numba_available", "set_default_accelerator"]
+__all__ = ["AUTO_SMOOTHED_CONTACT_MIN_VERTICES", "AUTO_SMOOTHED_MIN_VERTICES", "BlockJacobi", "Filter",
+           "SolveResult", "auto_preconditioner", "filtered_pcg", "make_preconditioner", "numba_available",
+           "set_default_accelerator"]
 
 #: ``"auto"`` smooths the prolongations of a grid cloth without contacts from this many vertices (128²). Measured
 #: on the shared hanging scene (docs/benchmarks.md, "The refresh chunked by coarse rows"): one step a frame, one
 #: thread, 72.1 -> 58.8 ms a frame at 128², on two 361 -> 240 at 256²; with the default step control 175 -> 153
-#: at 128²; at 64² a tie (13.9 / 13.4), at 32² slower (3.9 / 4.2). With obstacles it costs more solves a frame
-#: (the 64² drape 170 -> 219 ms, 128² 1.6 -> 2.7 s), so contact scenes keep the plain multigrid.
+#: at 128²; at 64² a tie (13.9 / 13.4), at 32² slower (3.9 / 4.2).
 AUTO_SMOOTHED_MIN_VERTICES = 16384
+#: ... and of a grid cloth among obstacles from this many (64²). Until 2026-12-06 contact scenes kept the plain
+#: multigrid: with the smoothed one the shared drape took more solves a frame (64² 170 -> 219 ms, 128² 1.6 ->
+#: 2.7 s), which were CG breaking down on an indefinite V-cycle (a coarse level's smoother amplifying,
+#: multigrid.SMOOTHER_RHO) and adaptive stepping halving the steps. With each coarse level's damping following
+#: its matrix, the smoothed multigrid takes about half the plain one's CG iterations a solve on the drape and
+#: the drape's run costs less: docs/benchmarks.md, "Coarse smoothers that contract".
+AUTO_SMOOTHED_CONTACT_MIN_VERTICES = 4096
 
 
-def auto_preconditioner(model: Any, contacts: bool = False) -> str:
+def auto_preconditioner(model: Any, contacts: bool = False, self_collision: bool = False) -> str:
     """What ``solver.preconditioner = "auto"`` (the default) runs for a model: ``"multigrid_smoothed"`` for a
-    grid cloth of at least :data:`AUTO_SMOOTHED_MIN_VERTICES` vertices in a scene without ``contacts``
-    (obstacles or self-collision), else ``"multigrid"``."""
+    grid cloth of at least :data:`AUTO_SMOOTHED_MIN_VERTICES` vertices, or
+    :data:`AUTO_SMOOTHED_CONTACT_MIN_VERTICES` in a scene with obstacles (``contacts``), without
+    ``self_collision`` (not measured there); else ``"multigrid"``."""
     grid = getattr(getattr(model, "geometry", None), "grid_shape", None) is not None
-    return "multigrid_smoothed" if grid and not contacts and model.n >= AUTO_SMOOTHED_MIN_VERTICES else "multigrid"
+    least = AUTO_SMOOTHED_CONTACT_MIN_VERTICES if contacts else AUTO_SMOOTHED_MIN_VERTICES
+    return "multigrid_smoothed" if grid and not self_collision and model.n >= least else "multigrid"
 
 
 def make_preconditioner(name: str, model: Any, accelerator: str | None = None):

@@ -273,6 +273,15 @@ class Multigrid:
                 self.sprol.append(SmoothedProlongation(cur, P, np.flatnonzero(cur.block_rows < cur.block_cols)))
             self.levels.append(lvl)
             cur = lvl.system
+        #: whether every setup estimates each coarse level's smoother damping (:data:`SMOOTHER_RHO`): off until
+        #: a solve breaks down on an indefinite V-cycle (:meth:`protect`), then for the rest of the run
+        self.damped = False
+        self._filt: Filter | None = None
+        #: per level, the smoother's damping of the last setup (the finest level's is ``omega``;
+        #: :data:`SMOOTHER_RHO`) and the estimate of ``lambda_max(D^-1 A)`` it came from (nan: not estimated)
+        self.level_omega = np.full(len(self.levels) + 1, self.omega)
+        self.level_lambda = np.full(len(self.levels) + 1, np.nan)
+        self._probes: dict[int, np.ndarray] = {}
         self._blocks: list[np.ndarray] = []
         self._A: list[sp.csr_array] = []
         self._chol: Any = None
@@ -304,8 +313,20 @@ class Multigrid:
         ``system`` is the assembled fine system (the one this hierarchy was built on, read through
         ``self.fine``); it is part of the preconditioner protocol shared with :class:`BlockJacobi`.
         """
+        self._filt = filt
         C = self.engine.setup(filt)
         self._chol, self.coarse_shift = coarse_cholesky(C)
+
+    def protect(self) -> bool:
+        """After a CG breakdown on this preconditioner (not positive definite: a coarse level's smoother
+        amplifying, :data:`SMOOTHER_RHO`): from now on every setup damps each coarse level's smoother to its
+        estimated ``lambda_max``, starting with the hierarchy set up again now from the current values. Returns
+        whether anything changed (False when already so, or never set up)."""
+        if self.damped or self._filt is None:
+            return False
+        self.damped = True
+        self.setup(self.fine, self._filt)
+        return True
 
     def refresh_diagonal(self, system: SystemMatrix | None, filt: Filter) -> None:
         """After a change of the fine system's diagonal blocks only, with the filter of the last setup: the
@@ -336,6 +357,17 @@ class Multigrid:
     def coarse_solve(self, b: np.ndarray) -> np.ndarray:
         """The coarsest level's exact solve with the factor of the last setup."""
         return sla.cho_solve(self._chol, b, check_finite=False)
+
+    def _probe(self, l: int) -> np.ndarray:
+        """A copy of coarse level ``l``'s fixed start vector for its damping's estimate (made on first use)."""
+        if l not in self._probes:
+            self._probes[l] = np.random.default_rng(l).standard_normal(3 * self._systems()[l].n)
+        return self._probes[l].copy()
+
+    def _set_damping(self, l: int, lam: float) -> None:
+        """Level ``l``'s smoother damping from its estimated ``lambda_max(D^-1 A)`` (:data:`SMOOTHER_RHO`)."""
+        self.level_lambda[l] = lam
+        self.level_omega[l] = smoother_damping(self.omega, lam)
 
 
 class _NumpyHierarchy:
@@ -382,7 +414,39 @@ class _NumpyHierarchy:
             mg._blocks.append(blocks)
             dinv = inv3(blocks[sm.diag_index])          # the smoother's, and the next level's smoothing of P
             self._D[l].data[:] = dinv.reshape(-1)
+            if mg.damped and 0 < l < len(systems) - 1:  # a smoothed coarse level: its damping (SMOOTHER_RHO)
+                mg._set_damping(l, self._rayleigh(l, blocks[sm.diag_index]))
         return mg._A[-1].toarray()
+
+    def _rayleigh(self, l: int, D: np.ndarray) -> float:
+        """:func:`implicit_cloth.kernels.pcg.smoother_lanczos` in numpy: level ``l``'s estimate of
+        ``lambda_max(D^-1 A)`` (``D`` its diagonal blocks)."""
+        A, Dinv = self.mg._A[l], self._D[l]
+
+        def dnorm(x: np.ndarray) -> float:
+            return float(np.sqrt(np.einsum("ni,nij,nj->", x.reshape(-1, 3), D, x.reshape(-1, 3))))
+
+        q = self.mg._probe(l)
+        nq = dnorm(q)
+        if not nq > 0.0:
+            return float("nan")
+        q /= nq
+        qp = np.zeros_like(q)
+        alpha, beta = np.zeros(SMOOTHER_LANCZOS_STEPS), np.zeros(SMOOTHER_LANCZOS_STEPS)
+        b, steps = 0.0, SMOOTHER_LANCZOS_STEPS
+        for s in range(SMOOTHER_LANCZOS_STEPS):
+            aq = A @ q
+            alpha[s] = float(q @ aq)
+            if s == SMOOTHER_LANCZOS_STEPS - 1:
+                break
+            w = Dinv @ aq - alpha[s] * q - b * qp
+            b = dnorm(w)
+            if not b > 0.0:
+                steps = s + 1
+                break
+            beta[s] = b
+            qp, q = q, w / b
+        return ritz_max(alpha, beta, steps)
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         return self._vcycle(0, r)
@@ -391,7 +455,7 @@ class _NumpyHierarchy:
         mg = self.mg
         if l == len(mg.levels):
             return mg.coarse_solve(b)
-        A, D, w = mg._A[l], self._D[l], mg.omega
+        A, D, w = mg._A[l], self._D[l], mg.level_omega[l]
         x = w * (D @ b)                                   # pre-smooth from x = 0
         x += self.P3[l] @ self._vcycle(l + 1, self.R3[l] @ (b - A @ x))
         x += w * (D @ (b - A @ x))                        # post-smooth
@@ -541,6 +605,45 @@ def _csr_from_blocks(sm: SystemMatrix, blocks: np.ndarray) -> sp.csr_array:
     return A
 
 
+#: A coarse level's block-Jacobi smoother is damped to ``omega_l = min(omega, SMOOTHER_RHO / lambda_l)``,
+#: ``lambda_l`` the level's largest eigenvalue of ``D^-1 A`` estimated at every setup (:data:`SMOOTHER_LANCZOS_STEPS`
+#: Lanczos steps from a fixed start, the largest Ritz value: from below, within 5 % on the levels measured). One
+#: damped Jacobi sweep scales an error mode of eigenvalue ``lambda`` by ``1 - omega lambda``: past
+#: ``omega lambda_max = 2`` it amplifies the top modes and the V-cycle is no longer positive definite. The
+#: Galerkin levels get there: on the shared 128² drape ``omega lambda_max`` reached 2.78 / 2.65 on levels 1 / 2
+#: of the smoothed hierarchy (CG broke down after 0-10 iterations, and adaptive stepping halved 18 steps in its
+#: first 0.5 s), 2.1-2.2 on the plain one's, and 2.4-2.7 on levels 3-5 of the smoothed 256² hanging cloth. The
+#: bound 1.75 leaves the fixed 0.7 wherever ``lambda_max <= 2.5`` (the hanging cloths' levels 1-2 measured
+#: 2.2-2.5) with a margin for the estimate's error. The finest level keeps ``omega`` (0.7 times a
+#: ``lambda_max`` of 1.98 on every cloth measured, drape and hanging: a sum of spring Laplacians over their
+#: diagonal stays within 2).
+SMOOTHER_RHO = 1.75
+#: Lanczos steps of each coarse level's estimate per setup (see :data:`SMOOTHER_RHO`); from a fixed start every
+#: time, so that a setup's damping depends on its matrices only. (Power iterations were 13-16 % low after 8;
+#: continued from the last setup's vector, 3 a setup, they missed a mode that a landing made dominant: 2.18
+#: for 3.14 on the 32² drape.)
+SMOOTHER_LANCZOS_STEPS = 10
+
+
+def ritz_max(alpha: np.ndarray, beta: np.ndarray, steps: int) -> float:
+    """The largest eigenvalue of the Lanczos tridiagonal matrix of ``steps`` steps (nan for none)."""
+    if steps <= 0:
+        return float("nan")
+    if steps == 1:
+        return float(alpha[0])
+    from scipy.linalg import eigh_tridiagonal
+
+    ev = eigh_tridiagonal(alpha[:steps], beta[:steps - 1], eigvals_only=True, select="i",
+                          select_range=(steps - 1, steps - 1))
+    return float(ev[0])
+
+
+def smoother_damping(omega: float, lam: float) -> float:
+    """The damping of a level whose estimated ``lambda_max(D^-1 A)`` is ``lam`` (:data:`SMOOTHER_RHO`); ``omega``
+    where the estimate is not a positive number."""
+    return min(omega, SMOOTHER_RHO / lam) if np.isfinite(lam) and lam > 0.0 else omega
+
+
 #: From this many fine vertices on, the compiled V-cycle keeps its matrices in float32, the fine spring blocks'
 #: six-number copy included (vectors, sums, the Galerkin products, the coarse Cholesky and CG itself, with its
 #: own float64 copy of the fine matrix, stay float64; the solve's stopping rule and tolerance are CG's, so the
@@ -661,7 +764,7 @@ class PackedHierarchy(NamedTuple):
     toff: np.ndarray
     C: np.ndarray         #: the coarsest solve: its upper Cholesky factor, or its dense inverse
     upper: bool           #: True: C is the factor
-    omega: float          #: smoother damping
+    omegas: np.ndarray    #: per level: the smoother's damping (Multigrid.level_omega)
     lpar: np.ndarray      #: per level: whether its passes run on threads (see :func:`thread_chunks`)
     lpv: np.ndarray       #: per level: THREAD_CHUNKS + 1 vertex bounds, then as many block-row bounds
     lpb: np.ndarray       #: per level: THREAD_CHUNKS + 1 offsets into pbb
@@ -870,6 +973,11 @@ class _FusedHierarchy:
                     _fused.galerkin_filter(*args, cpos, Sc, self.auI, self.auJ, td, tu)
             if l < L:
                 _fused.inv3(self.dg[v1:v2].reshape(-1), self.dinv[v1:v2].reshape(-1))
+            if l < L and mg.damped:      # the level's smoother damping (SMOOTHER_RHO)
+                alpha, beta = np.zeros(SMOOTHER_LANCZOS_STEPS), np.zeros(SMOOTHER_LANCZOS_STEPS)
+                steps = _fused.smoother_lanczos(l, self.dg, self.uI, self.uJ, self.uv, self.voff, self.uoff,
+                                                self.dinv, mg._probe(l), alpha, beta)
+                mg._set_damping(l, ritz_max(alpha, beta, steps))
         if mg.smoothed:               # the restrictions: P^T's blocks are P's transposed, in P^T's CSR order
             _smoothed.ptranspose_blocks(self.pval, self._tperm, self.tval)
         mg._A = [None] * (L + 1)
@@ -934,7 +1042,7 @@ class _FusedHierarchy:
             _set_numba_threads()
         return PackedHierarchy(self.dg, self.uI, self.uJ, self.uv, self.vu6, self.use6, self.voff, self.uoff,
                                self.clist, self.Sc, self.ws, self.dinv, self.pptr, self.pidx, self.pval, self.poff,
-                               self.pnnz, self.tptr, self.tidx, self.tval, self.toff, C, upper, self.mg.omega,
+                               self.pnnz, self.tptr, self.tidx, self.tval, self.toff, C, upper, self.mg.level_omega,
                                self._threaded_levels() if threaded else self._serial, self.lpv, self.lpb, self.pbb)
 
     def apply(self, r: np.ndarray) -> np.ndarray:
@@ -963,7 +1071,7 @@ class _FusedHierarchy:
         dv, it, res, conv, err = _fused.pcg(
             self.adg, self.auI, self.auJ, self.auv, self.au6, self.use6, h.dg, h.uI, h.uJ, h.uv, h.u6, h.voff, h.uoff,
             h.clist, h.Sc, h.dinv, h.pptr, h.pidx, h.pval, h.poff, h.pnnz, h.tptr, h.tidx, h.tval, h.toff,
-            h.C, h.upper, h.omega, h.lpar, h.lpv, h.lpb, h.pbb,
+            h.C, h.upper, h.omegas, h.lpar, h.lpv, h.lpb, h.pbb,
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
             f(mass) if mass is not None else np.zeros(0), mass is not None, float(tol), int(max_iterations),
             rule == "bound", int(min_delay), float(delay_fraction), self.sum_chunks)
