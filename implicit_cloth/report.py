@@ -115,9 +115,13 @@ class SolverReport(Record):
     #: with Newton iterations or a smaller step) included (None in reports written before they existed)
     mean_attempted_solves: float | None = None
     mean_attempted_iterations: float | None = None
+    #: True when a CG breakdown made the multigrid damp its coarse smoothers to their matrices for the rest of
+    #: the run (``Multigrid.protect``); absent otherwise
+    smoothers_damped: bool | None = None
 
     OPTIONAL_KEYS: ClassVar[frozenset[str]] = frozenset({"contact_tolerance", "mean_attempted_solves",
-                                                         "mean_attempted_iterations", "threading_layer"})
+                                                         "mean_attempted_iterations", "threading_layer",
+                                                         "smoothers_damped"})
 
 
 @dataclass

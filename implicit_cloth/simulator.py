@@ -670,6 +670,8 @@ class _Recorder:
             layer = _threading_layer(integ.precond)
             if layer is not None:                    # (the numpy path, or no parallel region ran: left out)
                 report["solver"]["threading_layer"] = layer
+            if getattr(integ.precond, "damped", False):   # a breakdown protected the multigrid (left out: none)
+                report["solver"]["smoothers_damped"] = True
             if tot["unconverged_steps"]:
                 warnings.warn(
                     f"the linear solver did not reach tolerance {integ.tolerance:g}"

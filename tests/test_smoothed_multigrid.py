@@ -334,3 +334,7 @@ def test_a_breakdown_protects_the_multigrid_and_the_step_is_solved_again(acceler
     assert np.all(mg.level_omega[1:-1] * mg.level_lambda[1:-1] <= 1.75 + 1e-12)
     ref = _direct(m.system.csr, b, z, filt)
     assert np.linalg.norm(dv.reshape(-1) - ref) <= 1e-5 * np.linalg.norm(ref)
+    # the run's report says so; an unprotected run's leaves the key out
+    assert sim.run(duration=0.05).report["solver"]["smoothers_damped"] is True
+    fresh = ic.Simulator(_scene(res=(20, 20)), dt=H, solver={"preconditioner": "multigrid"}).run(duration=0.05)
+    assert "smoothers_damped" not in fresh.report["solver"]

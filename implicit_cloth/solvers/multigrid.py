@@ -415,10 +415,10 @@ class _NumpyHierarchy:
             dinv = inv3(blocks[sm.diag_index])          # the smoother's, and the next level's smoothing of P
             self._D[l].data[:] = dinv.reshape(-1)
             if mg.damped and 0 < l < len(systems) - 1:  # a smoothed coarse level: its damping (SMOOTHER_RHO)
-                mg._set_damping(l, self._rayleigh(l, blocks[sm.diag_index]))
+                mg._set_damping(l, self._lanczos(l, blocks[sm.diag_index]))
         return mg._A[-1].toarray()
 
-    def _rayleigh(self, l: int, D: np.ndarray) -> float:
+    def _lanczos(self, l: int, D: np.ndarray) -> float:
         """:func:`implicit_cloth.kernels.pcg.smoother_lanczos` in numpy: level ``l``'s estimate of
         ``lambda_max(D^-1 A)`` (``D`` its diagonal blocks)."""
         A, Dinv = self.mg._A[l], self._D[l]
@@ -605,18 +605,21 @@ def _csr_from_blocks(sm: SystemMatrix, blocks: np.ndarray) -> sp.csr_array:
     return A
 
 
-#: A coarse level's block-Jacobi smoother is damped to ``omega_l = min(omega, SMOOTHER_RHO / lambda_l)``,
-#: ``lambda_l`` the level's largest eigenvalue of ``D^-1 A`` estimated at every setup (:data:`SMOOTHER_LANCZOS_STEPS`
-#: Lanczos steps from a fixed start, the largest Ritz value: from below, within 5 % on the levels measured). One
-#: damped Jacobi sweep scales an error mode of eigenvalue ``lambda`` by ``1 - omega lambda``: past
-#: ``omega lambda_max = 2`` it amplifies the top modes and the V-cycle is no longer positive definite. The
-#: Galerkin levels get there: on the shared 128² drape ``omega lambda_max`` reached 2.78 / 2.65 on levels 1 / 2
-#: of the smoothed hierarchy (CG broke down after 0-10 iterations, and adaptive stepping halved 18 steps in its
-#: first 0.5 s), 2.1-2.2 on the plain one's, and 2.4-2.7 on levels 3-5 of the smoothed 256² hanging cloth. The
-#: bound 1.75 leaves the fixed 0.7 wherever ``lambda_max <= 2.5`` (the hanging cloths' levels 1-2 measured
-#: 2.2-2.5) with a margin for the estimate's error. The finest level keeps ``omega`` (0.7 times a
-#: ``lambda_max`` of 1.98 on every cloth measured, drape and hanging: a sum of spring Laplacians over their
-#: diagonal stays within 2).
+#: Once a solve has broken down on the hierarchy (:meth:`Multigrid.protect`), a coarse level's block-Jacobi
+#: smoother is damped to ``omega_l = min(omega, SMOOTHER_RHO / lambda_l)``, ``lambda_l`` the level's largest
+#: eigenvalue of ``D^-1 A`` estimated at every setup (:data:`SMOOTHER_LANCZOS_STEPS` Lanczos steps from a fixed
+#: start, the largest Ritz value: from below, within 2.5 % on the levels measured). One damped Jacobi sweep
+#: scales an error mode of eigenvalue ``lambda`` by ``1 - omega lambda``: past ``omega lambda_max = 2`` it
+#: amplifies the top modes and the V-cycle is no longer positive definite. The Galerkin levels get there: on the
+#: shared 128² drape ``omega lambda_max`` reached 2.78 / 2.65 on levels 1 / 2 of the smoothed hierarchy (CG broke
+#: down after 0-10 iterations, and adaptive stepping halved 18 steps in the first second), 2.1-2.2 on the plain
+#: one's, and 2.7 on levels 3-5 of the smoothed 256² hanging cloth (which converges all the same). The bound
+#: 1.75 leaves the fixed 0.7 wherever ``lambda_max <= 2.5`` (the hanging cloths' levels 1-2 measured 2.2-2.5)
+#: with a margin for the estimate's error. The finest level keeps ``omega`` (0.7 times a ``lambda_max`` of 1.98
+#: on every cloth measured, drape and hanging: a sum of spring Laplacians over their diagonal stays within 2).
+#: Why not from the start: estimated at every setup it costs 1.0 / 3.9 / 21.7 ms a setup at 64² / 128² / 256²
+#: (8-12 % of a step), and where nothing breaks the damped levels took more iterations (the 256² hanging cloth,
+#: one step a frame: 13.4 against 12.3 a frame); runs that never break down keep their numbers.
 SMOOTHER_RHO = 1.75
 #: Lanczos steps of each coarse level's estimate per setup (see :data:`SMOOTHER_RHO`); from a fixed start every
 #: time, so that a setup's damping depends on its matrices only. (Power iterations were 13-16 % low after 8;
