@@ -306,7 +306,7 @@ def test_coarse_smoothers_contract_where_the_fixed_damping_amplified(accelerator
             worst_fixed = max(worst_fixed, mg.omega * lam)
             worst = max(worst, mg.level_omega[l] * lam)
             assert mg.level_lambda[l] <= lam * (1 + 1e-9)            # the estimate: a lower bound
-            assert mg.level_omega[l] == min(mg.omega, SMOOTHER_RHO / mg.level_lambda[l])
+            assert mg.level_omega[l] == min(mg.omega, SMOOTHER_RHO / mg.level_lambda[l])   # (within the bound)
     assert worst_fixed > 2.3            # the premise: the fixed damping amplified on some level
     assert worst < 2.0, worst
 
@@ -338,3 +338,15 @@ def test_a_breakdown_protects_the_multigrid_and_the_step_is_solved_again(acceler
     assert sim.run(duration=0.05).report["solver"]["smoothers_damped"] is True
     fresh = ic.Simulator(_scene(res=(20, 20)), dt=H, solver={"preconditioner": "multigrid"}).run(duration=0.05)
     assert "smoothers_damped" not in fresh.report["solver"]
+
+
+def test_smoother_damping_rule():
+    """min(omega, SMOOTHER_RHO / lambda), the estimate taken at most the level's blocks a row (a bound on
+    lambda_max(D^-1 A) of a positive definite matrix), that bound where the estimate is no positive number."""
+    from implicit_cloth.solvers.multigrid import SMOOTHER_RHO, smoother_damping
+
+    assert smoother_damping(0.7, 2.0, 9.0) == 0.7                        # 0.7 x 2 < 1.75: unchanged
+    assert smoother_damping(0.7, 3.5, 9.0) == pytest.approx(SMOOTHER_RHO / 3.5)
+    assert smoother_damping(0.7, 5e3, 9.0) == pytest.approx(SMOOTHER_RHO / 9.0)   # a wild estimate: the bound
+    for bad in (np.nan, np.inf, 0.0, -1.0):
+        assert smoother_damping(0.7, bad, 9.0) == pytest.approx(SMOOTHER_RHO / 9.0)

@@ -367,7 +367,8 @@ class Multigrid:
     def _set_damping(self, l: int, lam: float) -> None:
         """Level ``l``'s smoother damping from its estimated ``lambda_max(D^-1 A)`` (:data:`SMOOTHER_RHO`)."""
         self.level_lambda[l] = lam
-        self.level_omega[l] = smoother_damping(self.omega, lam)
+        s = self._systems()[l]
+        self.level_omega[l] = smoother_damping(self.omega, lam, float(np.bincount(s.block_rows, minlength=s.n).max()))
 
 
 class _NumpyHierarchy:
@@ -641,10 +642,14 @@ def ritz_max(alpha: np.ndarray, beta: np.ndarray, steps: int) -> float:
     return float(ev[0])
 
 
-def smoother_damping(omega: float, lam: float) -> float:
-    """The damping of a level whose estimated ``lambda_max(D^-1 A)`` is ``lam`` (:data:`SMOOTHER_RHO`); ``omega``
-    where the estimate is not a positive number."""
-    return min(omega, SMOOTHER_RHO / lam) if np.isfinite(lam) and lam > 0.0 else omega
+def smoother_damping(omega: float, lam: float, bound: float) -> float:
+    """The damping of a level whose estimated ``lambda_max(D^-1 A)`` is ``lam`` (:data:`SMOOTHER_RHO`), the
+    estimate taken at most ``bound``, and ``bound`` where it is not a positive number. ``bound``: the level's
+    most blocks in a block row, which ``lambda_max(D^-1 A)`` of a positive definite matrix cannot exceed
+    (``A <= k D`` for ``k`` blocks a row, by Cauchy-Schwarz); the float32 levels of a 512² cloth gave Ritz
+    values beyond it (their diagonal blocks rounded to nearly singular), which would stop their smoothing."""
+    lam = min(lam, bound) if np.isfinite(lam) and lam > 0.0 else bound
+    return min(omega, SMOOTHER_RHO / lam)
 
 
 #: From this many fine vertices on, the compiled V-cycle keeps its matrices in float32, the fine spring blocks'
