@@ -5,7 +5,8 @@ through a general strided loop: here about 6 times slower than the elementwise `
 (12000 edges: 0.56 against 0.09 ms), and ``np.all(b, axis=1)`` of a (K, 3) bool array about 15 times slower
 than ``b[:, 0] & b[:, 1] & b[:, 2]``. The collision stages take such reductions over every cloth edge and
 triangle several times a solve (on the shared 64² drape at rest, 4 of its 42 ms a frame before these).
-The results are numpy's exactly: minimum, maximum, and, or are exact, and NaN propagates as in ``min``/``max``.
+The results are numpy's exactly: minimum, maximum and logical and are exact, and NaN propagates as in
+``min``/``max``.
 """
 
 from __future__ import annotations
@@ -38,8 +39,3 @@ def max1(a: np.ndarray) -> np.ndarray:
 def all1(b: np.ndarray) -> np.ndarray:
     """``np.all(b, axis=1)`` of a bool array."""
     return _fold(np.logical_and, b)
-
-
-def any1(b: np.ndarray) -> np.ndarray:
-    """``np.any(b, axis=1)`` of a bool array."""
-    return _fold(np.logical_or, b)

@@ -166,19 +166,19 @@ class Context:
 
 def near(shape: Shape, p0: np.ndarray, p1: np.ndarray, margin: float) -> np.ndarray:
     """Bool mask of swept boxes (rows of p0 -> p1, or (K, m, 3) primitives) near the shape's local box."""
-    same = p0 is p1                                   # a still box (a state, not a step)
+    lo, hi = _corners(p0)
+    if p1 is not p0:                                  # a step, not a still state
+        lo1, hi1 = _corners(p1)
+        lo, hi = np.minimum(lo, lo1), np.maximum(hi, hi1)
     if isinstance(shape, Plane):
-        if p0.ndim == 3:
-            z = min1(p0[..., 2]) if same else np.minimum(min1(p0[..., 2]), min1(p1[..., 2]))
-        else:
-            z = p0[:, 2] if same else np.minimum(p0[:, 2], p1[:, 2])
-        return z <= margin
+        return lo[:, 2] <= margin
     a, b = local_aabb(shape)
-    if p0.ndim == 3:
-        lo, hi = (min1(p0), max1(p0)) if same else (np.minimum(min1(p0), min1(p1)), np.maximum(max1(p0), max1(p1)))
-    else:
-        lo, hi = (p0, p0) if same else (np.minimum(p0, p1), np.maximum(p0, p1))
     return all1((lo <= b + margin) & (hi >= a - margin))
+
+
+def _corners(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corners (K, 3) of points (K, 3) or of primitives (K, m, 3)."""
+    return (min1(p), max1(p)) if p.ndim == 3 else (p, p)
 
 
 def world_at(mo: RigidMotion, q: np.ndarray, n_loc: np.ndarray, tc: np.ndarray):

@@ -281,7 +281,8 @@ class Multigrid:
         #: :data:`SMOOTHER_RHO`) and the estimate of ``lambda_max(D^-1 A)`` it came from (nan: not estimated)
         self.level_omega = np.full(len(self.levels) + 1, self.omega)
         self.level_lambda = np.full(len(self.levels) + 1, np.nan)
-        self._probes: dict[int, np.ndarray] = {}
+        #: per coarse level, made at its first estimate: its fixed start vector and its most blocks a row
+        self._estimate_data: dict[int, tuple[np.ndarray, float]] = {}
         self._blocks: list[np.ndarray] = []
         self._A: list[sp.csr_array] = []
         self._chol: Any = None
@@ -358,17 +359,23 @@ class Multigrid:
         """The coarsest level's exact solve with the factor of the last setup."""
         return sla.cho_solve(self._chol, b, check_finite=False)
 
+    def _level_estimate_data(self, l: int) -> tuple[np.ndarray, float]:
+        """Coarse level ``l``'s fixed start vector for its damping's estimate and its most blocks a row (the
+        bound of :func:`smoother_damping`), made on first use."""
+        if l not in self._estimate_data:
+            s = self._systems()[l]
+            self._estimate_data[l] = (np.random.default_rng(l).standard_normal(3 * s.n),
+                                      float(np.bincount(s.block_rows, minlength=s.n).max()))
+        return self._estimate_data[l]
+
     def _probe(self, l: int) -> np.ndarray:
-        """A copy of coarse level ``l``'s fixed start vector for its damping's estimate (made on first use)."""
-        if l not in self._probes:
-            self._probes[l] = np.random.default_rng(l).standard_normal(3 * self._systems()[l].n)
-        return self._probes[l].copy()
+        """A copy of coarse level ``l``'s fixed start vector (the estimate overwrites it)."""
+        return self._level_estimate_data(l)[0].copy()
 
     def _set_damping(self, l: int, lam: float) -> None:
         """Level ``l``'s smoother damping from its estimated ``lambda_max(D^-1 A)`` (:data:`SMOOTHER_RHO`)."""
         self.level_lambda[l] = lam
-        s = self._systems()[l]
-        self.level_omega[l] = smoother_damping(self.omega, lam, float(np.bincount(s.block_rows, minlength=s.n).max()))
+        self.level_omega[l] = smoother_damping(self.omega, lam, self._level_estimate_data(l)[1])
 
 
 class _NumpyHierarchy:
