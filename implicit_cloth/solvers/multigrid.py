@@ -750,6 +750,21 @@ def galerkin_chunks(d_ptr: np.ndarray, d_dst: np.ndarray, u_ptr: np.ndarray, u_d
     return tuple(out)
 
 
+def galerkin_sequence(d_ptr: np.ndarray, d_dst: np.ndarray, d_pa: np.ndarray, d_pb: np.ndarray, u_ptr: np.ndarray,
+                      u_dst: np.ndarray, u_pa: np.ndarray, u_pb: np.ndarray, cuI: np.ndarray, n_coarse: int,
+                      chunks: int = THREAD_CHUNKS) -> tuple:
+    """A smoothed level's Galerkin entry lists (block prolongation: each entry's destination and two prolongation
+    entries) in :func:`galerkin_chunks`' order, for :func:`implicit_cloth.kernels.smoothed.pgalerkin_blocks`:
+    ``(d_src, d_pa, d_pb, d_dst, d_cb, u_src, u_pa, u_pb, u_dst, u_cb)``, each list's source blocks,
+    prolongation entries and destinations chunk by chunk (int32), and the chunks' bounds."""
+    dsrc, dord, dcb, usrc, uord, ucb = galerkin_chunks(d_ptr, d_dst, u_ptr, u_dst, cuI, n_coarse, chunks)
+    out: list = []
+    for src, order, cb, dst, pa, pb in ((dsrc, dord, dcb, d_dst, d_pa, d_pb), (usrc, uord, ucb, u_dst, u_pa, u_pb)):
+        out += [np.ascontiguousarray(a[order], dtype=np.int32) for a in (src, pa, pb)]
+        out += [np.ascontiguousarray(dst[order]), cb]
+    return tuple(out)
+
+
 class PackedHierarchy(NamedTuple):
     """The packed hierarchy the compiled V-cycle reads (:func:`implicit_cloth.kernels.pcg.vcycle`), in its
     argument order: every level's diagonal and upper blocks, the filter at the constrained vertices, the
@@ -966,10 +981,8 @@ class _FusedHierarchy:
                 # numba parallel regions they are faster even on one thread (at 128² the smoothing 5.6x, the
                 # product 2.2x)
                 _smoothed.psmooth_prolongation(*sargs, self._rows[l - 1])
-                dsrc, dord, dcb, usrc, uord, ucb = self._gal_chunks(l - 1)
                 gargs = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
-                         self.uv[u1:u2].reshape(-1), dsrc, gal[1], gal[3], gal[4], dord, dcb,
-                         usrc, gal[6], gal[8], gal[9], uord, ucb, pb)
+                         self.uv[u1:u2].reshape(-1)) + self._gal_chunks(l - 1) + (pb,)
                 _smoothed.pgalerkin_blocks(*gargs)
                 if l == 1 and len(c):
                     _smoothed.pgalerkin_blocks_filter(*gargs, cpos, Sc, self.auI, self.auJ)
@@ -1019,13 +1032,18 @@ class _FusedHierarchy:
             self.dinv[c] = inv3(Sc @ self.adg[c] @ Sc + (np.eye(3) - Sc))
 
     def _gal_chunks(self, l: int) -> tuple:
-        """Level ``l``'s Galerkin entries cut for threads (:func:`galerkin_chunks`), made on first use."""
+        """Level ``l``'s Galerkin entries cut for threads, made on first use: smoothed, the entry lists in the
+        chunks' order (:func:`galerkin_sequence`), else the chunks (:func:`galerkin_chunks`)."""
         cache = self.__dict__.setdefault("_gal_chunk_cache", {})
         if l not in cache:
             gal = self._gal[l]
-            u_list = 5 if self.mg.smoothed else 3
             cuI = self.uI[self.uoff[l + 1]:self.uoff[l + 2]]
-            cache[l] = galerkin_chunks(gal[0], gal[1], gal[u_list], gal[u_list + 1], cuI, self.mg.levels[l].system.n)
+            n_coarse = self.mg.levels[l].system.n
+            if self.mg.smoothed:
+                cache[l] = galerkin_sequence(gal[0], gal[1], gal[3], gal[4], gal[5], gal[6], gal[8], gal[9], cuI,
+                                             n_coarse)
+            else:
+                cache[l] = galerkin_chunks(gal[0], gal[1], gal[3], gal[4], cuI, n_coarse)
         return cache[l]
 
     def coarse_dense(self) -> np.ndarray:
