@@ -981,8 +981,8 @@ class _FusedHierarchy:
                 # numba parallel regions they are faster even on one thread (at 128² the smoothing 5.6x, the
                 # product 2.2x)
                 _smoothed.psmooth_prolongation(*sargs, self._rows[l - 1])
-                gargs = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
-                         self.uv[u1:u2].reshape(-1)) + self._gal_chunks(l - 1) + (pb,)
+                gargs: tuple[Any, ...] = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
+                                          self.uv[u1:u2].reshape(-1)) + self._gal_chunks(l - 1) + (pb,)
                 _smoothed.pgalerkin_blocks(*gargs)
                 if l == 1 and len(c):
                     _smoothed.pgalerkin_blocks_filter(*gargs, cpos, Sc, self.auI, self.auJ)
