@@ -985,7 +985,7 @@ class _FusedHierarchy:
                                           self.uv[u1:u2].reshape(-1)) + self._gal_chunks(l - 1) + (pb,)
                 _smoothed.pgalerkin_blocks(*gargs)
                 if l == 1 and len(c):
-                    _smoothed.pgalerkin_blocks_filter(*gargs, cpos, Sc, self.auI, self.auJ)
+                    _smoothed.pgalerkin_blocks_filter(*(gargs + (cpos, Sc, self.auI, self.auJ)))
             else:
                 args = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
                         self.uv[u1:u2].reshape(-1), gal[0], gal[1], gal[2], gal[3], gal[4], gal[5])
