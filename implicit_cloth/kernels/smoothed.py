@@ -86,8 +86,24 @@ def _smooth_rows(f0, f1, sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, 
             for m in range(9):
                 acc[m] = 0.0
             for t in range(t_ptr[e], t_ptr[e + 1]):
-                _term_block(sd, su, t_code[t], Sc, cpos, f, uI, uJ, tmp, B)
+                code = t_code[t]
+                k = code // 3
+                kind = code - 3 * k
                 w = t_w[t]
+                if len(cpos) == 0 or (cpos[f] < 0 and cpos[uJ[k] if kind == 1 else (uI[k] if kind == 2 else f)] < 0):
+                    # an unfiltered block, added from where it is stored (the same products as through B)
+                    if kind == 0:
+                        for m in range(9):
+                            acc[m] += w * sd[9 * k + m]
+                    elif kind == 1:
+                        for m in range(9):
+                            acc[m] += w * su[9 * k + m]
+                    else:
+                        for a in range(3):
+                            for b in range(3):
+                                acc[3 * a + b] += w * su[9 * k + 3 * b + a]
+                    continue
+                _term_block(sd, su, code, Sc, cpos, f, uI, uJ, tmp, B)
                 for m in range(9):
                     acc[m] += w * B[m]
             o = 9 * e
