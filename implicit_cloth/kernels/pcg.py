@@ -841,20 +841,20 @@ def galerkin(sd, su, od, ou, d_ptr, d_dst, d_w, u_ptr, u_dst, u_w):
 
 
 @njit(cache=True, fastmath={"contract"}, parallel=True)
-def pgalerkin(sd, su, od, ou, d_src, d_dst, d_w, d_ord, d_cb, u_src, u_dst, u_w, u_ord, u_cb):
+def pgalerkin(sd, su, od, ou, d_src, d_dst, d_w, d_cb, u_src, u_dst, u_w, u_cb):
     """:func:`galerkin` on threads. Chunk ``k`` owns a range of the coarse rows and adds, to the blocks of its
-    rows, their entries in the order the serial kernel adds them (``*_ord[*_cb[k]:*_cb[k + 1]]``: entries
-    ascending, the diagonal list's before the upper list's; ``*_src``: each entry's source block): every
-    coarse block is the same sum, in the same order, as serially, whatever the thread count."""
+    rows, their entries in the order the serial kernel adds them: the entry lists come in that order
+    (:func:`implicit_cloth.solvers.multigrid.galerkin_sequence`: chunk by chunk, ascending within one, the
+    diagonal list's before the upper list's; ``*_src``: each entry's source block; chunk ``k`` is
+    ``*_cb[k]:*_cb[k + 1]``): every coarse block is the same sum, in the same order, as serially, whatever the
+    thread count."""
     od[:] = 0.0
     ou[:] = 0.0
     for k in prange(len(d_cb) - 1):
         for q in range(d_cb[k], d_cb[k + 1]):
-            e = d_ord[q]
-            gal_add(sd[9 * d_src[e]:9 * d_src[e] + 9], d_dst[e], d_w[e], od, ou)
+            gal_add(sd[9 * d_src[q]:9 * d_src[q] + 9], d_dst[q], d_w[q], od, ou)
         for q in range(u_cb[k], u_cb[k + 1]):
-            e = u_ord[q]
-            gal_add(su[9 * u_src[e]:9 * u_src[e] + 9], u_dst[e], u_w[e], od, ou)
+            gal_add(su[9 * u_src[q]:9 * u_src[q] + 9], u_dst[q], u_w[q], od, ou)
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")

@@ -170,7 +170,7 @@ def galerkin_blocks(sd, su, od, ou, d_ptr, d_dst, d_pa, d_pb, u_ptr, u_dst, u_pa
 
 
 @njit(cache=True, fastmath={"contract"}, parallel=True)
-def pgalerkin_blocks(sd, su, od, ou, d_src, d_pa, d_pb, d_dst, d_cb, u_src, u_pa, u_pb, u_dst, u_cb, pb):
+def pgalerkin_blocks(sd, su, od, ou, d_src, d_dst, d_pa, d_pb, d_cb, u_src, u_dst, u_pa, u_pb, u_cb, pb):
     """:func:`galerkin_blocks` on threads. Chunk ``k`` owns a range of the coarse rows and adds, to the blocks of
     its rows, their entries in the order the serial kernel adds them: the entry lists come in that order
     (:func:`implicit_cloth.solvers.multigrid.galerkin_sequence`: chunk by chunk, ascending within one, the
@@ -183,12 +183,12 @@ def pgalerkin_blocks(sd, su, od, ou, d_src, d_pa, d_pb, d_dst, d_cb, u_src, u_pa
     for k in prange(len(d_cb) - 1):
         Y = np.empty(9)
         C = np.empty(9)
-        _galerkin_chunk(sd, od, ou, d_src, d_pa, d_pb, d_dst, d_cb[k], d_cb[k + 1], pb, Y, C)
-        _galerkin_chunk(su, od, ou, u_src, u_pa, u_pb, u_dst, u_cb[k], u_cb[k + 1], pb, Y, C)
+        _galerkin_chunk(sd, od, ou, d_src, d_dst, d_pa, d_pb, d_cb[k], d_cb[k + 1], pb, Y, C)
+        _galerkin_chunk(su, od, ou, u_src, u_dst, u_pa, u_pb, u_cb[k], u_cb[k + 1], pb, Y, C)
 
 
 @njit(cache=True, fastmath={"contract"}, parallel=True)
-def pgalerkin_blocks_filter(sd, su, od, ou, d_src, d_pa, d_pb, d_dst, d_cb, u_src, u_pa, u_pb, u_dst, u_cb, pb,
+def pgalerkin_blocks_filter(sd, su, od, ou, d_src, d_dst, d_pa, d_pb, d_cb, u_src, u_dst, u_pa, u_pb, u_cb, pb,
                             cpos, Sc, fuI, fuJ):
     """:func:`galerkin_blocks_filter` on threads, chunked as :func:`pgalerkin_blocks`: each chunk adds
     ``filtered - unfiltered`` of the source blocks touching a constrained vertex through those of its entries,
@@ -197,14 +197,14 @@ def pgalerkin_blocks_filter(sd, su, od, ou, d_src, d_pa, d_pb, d_dst, d_cb, u_sr
         B = np.empty(9)
         Y = np.empty(9)
         C = np.empty(9)
-        _filter_chunk(sd, od, ou, d_src, d_pa, d_pb, d_dst, d_cb[k], d_cb[k + 1], pb, cpos, Sc, fuI, fuJ,
+        _filter_chunk(sd, od, ou, d_src, d_dst, d_pa, d_pb, d_cb[k], d_cb[k + 1], pb, cpos, Sc, fuI, fuJ,
                       True, B, Y, C)
-        _filter_chunk(su, od, ou, u_src, u_pa, u_pb, u_dst, u_cb[k], u_cb[k + 1], pb, cpos, Sc, fuI, fuJ,
+        _filter_chunk(su, od, ou, u_src, u_dst, u_pa, u_pb, u_cb[k], u_cb[k + 1], pb, cpos, Sc, fuI, fuJ,
                       False, B, Y, C)
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
-def _filter_chunk(src, od, ou, esrc, pa, pbi, dst, lo, hi, pb, cpos, Sc, fuI, fuJ, diag, B, Y, C):
+def _filter_chunk(src, od, ou, esrc, dst, pa, pbi, lo, hi, pb, cpos, Sc, fuI, fuJ, diag, B, Y, C):
     """The entries ``lo:hi`` of one list of :func:`pgalerkin_blocks_filter` whose source block touches a
     constrained vertex (``diag``: the list of diagonal blocks, vertex ``s``; else upper block ``s``, vertices
     ``fuI[s]``, ``fuJ[s]``): ``B`` its ``filtered - unfiltered``, ``Y`` formed again where the block or ``pa``
@@ -228,7 +228,7 @@ def _filter_chunk(src, od, ou, esrc, pa, pbi, dst, lo, hi, pb, cpos, Sc, fuI, fu
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
-def _galerkin_chunk(src, od, ou, esrc, pa, pbi, dst, lo, hi, pb, Y, C):
+def _galerkin_chunk(src, od, ou, esrc, dst, pa, pbi, lo, hi, pb, Y, C):
     """The entries ``lo:hi`` of one list of :func:`pgalerkin_blocks`; ``Y`` formed again where the source
     block or ``pa`` changes, as :func:`_galerkin_list` does (the same products)."""
     last_s = -1

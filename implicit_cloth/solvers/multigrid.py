@@ -750,18 +750,21 @@ def galerkin_chunks(d_ptr: np.ndarray, d_dst: np.ndarray, u_ptr: np.ndarray, u_d
     return tuple(out)
 
 
-def galerkin_sequence(d_ptr: np.ndarray, d_dst: np.ndarray, d_pa: np.ndarray, d_pb: np.ndarray, u_ptr: np.ndarray,
-                      u_dst: np.ndarray, u_pa: np.ndarray, u_pb: np.ndarray, cuI: np.ndarray, n_coarse: int,
-                      chunks: int = THREAD_CHUNKS) -> tuple:
-    """A smoothed level's Galerkin entry lists (block prolongation: each entry's destination and two prolongation
-    entries) in :func:`galerkin_chunks`' order, for :func:`implicit_cloth.kernels.smoothed.pgalerkin_blocks`:
-    ``(d_src, d_pa, d_pb, d_dst, d_cb, u_src, u_pa, u_pb, u_dst, u_cb)``, each list's source blocks,
-    prolongation entries and destinations chunk by chunk (int32), and the chunks' bounds."""
-    dsrc, dord, dcb, usrc, uord, ucb = galerkin_chunks(d_ptr, d_dst, u_ptr, u_dst, cuI, n_coarse, chunks)
+def galerkin_sequence(d_ptr: np.ndarray, d_lists: tuple, u_ptr: np.ndarray, u_lists: tuple, cuI: np.ndarray,
+                      n_coarse: int, chunks: int = THREAD_CHUNKS) -> tuple:
+    """A level's Galerkin entry lists in :func:`galerkin_chunks`' order, for the chunked Galerkin kernels
+    (:func:`implicit_cloth.kernels.pcg.pgalerkin`, :func:`implicit_cloth.kernels.smoothed.pgalerkin_blocks`),
+    which then read each chunk's entries sequentially: ``d_lists`` / ``u_lists`` the per-entry arrays of the
+    diagonal and upper lists, destinations first (the plain product: destinations and weights; the smoothed:
+    destinations and the two prolongation entries). Returns ``(d_src, *d_lists, d_cb, u_src, *u_lists, u_cb)``
+    permuted: each list's source blocks and arrays chunk by chunk (integer arrays as int32), and the chunks'
+    bounds."""
+    dsrc, dord, dcb, usrc, uord, ucb = galerkin_chunks(d_ptr, d_lists[0], u_ptr, u_lists[0], cuI, n_coarse, chunks)
     out: list = []
-    for src, order, cb, dst, pa, pb in ((dsrc, dord, dcb, d_dst, d_pa, d_pb), (usrc, uord, ucb, u_dst, u_pa, u_pb)):
-        out += [np.ascontiguousarray(a[order], dtype=np.int32) for a in (src, pa, pb)]
-        out += [np.ascontiguousarray(dst[order]), cb]
+    for src, order, cb, lists in ((dsrc, dord, dcb, d_lists), (usrc, uord, ucb, u_lists)):
+        out.append(np.ascontiguousarray(src[order], dtype=np.int32))
+        out += [np.ascontiguousarray(a[order], dtype=np.int32 if a.dtype.kind in "iu" else a.dtype) for a in lists]
+        out.append(cb)
     return tuple(out)
 
 
@@ -990,9 +993,7 @@ class _FusedHierarchy:
                 args = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
                         self.uv[u1:u2].reshape(-1), gal[0], gal[1], gal[2], gal[3], gal[4], gal[5])
                 if tmin is not None and v1 - v0 >= tmin:     # on threads (one: slower than serial)
-                    dsrc, dord, dcb, usrc, uord, ucb = self._gal_chunks(l - 1)
-                    _fused.pgalerkin(args[0], args[1], args[2], args[3], dsrc, gal[1], gal[2], dord, dcb,
-                                     usrc, gal[4], gal[5], uord, ucb)
+                    _fused.pgalerkin(*(args[:4] + self._gal_chunks(l - 1)))
                 else:
                     _fused.galerkin(*args)
                 if l == 1 and len(c):     # the product of the filtered fine matrix S A S + (I - S)
@@ -1032,18 +1033,18 @@ class _FusedHierarchy:
             self.dinv[c] = inv3(Sc @ self.adg[c] @ Sc + (np.eye(3) - Sc))
 
     def _gal_chunks(self, l: int) -> tuple:
-        """Level ``l``'s Galerkin entries cut for threads, made on first use: smoothed, the entry lists in the
-        chunks' order (:func:`galerkin_sequence`), else the chunks (:func:`galerkin_chunks`)."""
+        """Level ``l``'s Galerkin entries in the chunks' order for threads (:func:`galerkin_sequence`), made on
+        first use."""
         cache = self.__dict__.setdefault("_gal_chunk_cache", {})
         if l not in cache:
             gal = self._gal[l]
             cuI = self.uI[self.uoff[l + 1]:self.uoff[l + 2]]
             n_coarse = self.mg.levels[l].system.n
-            if self.mg.smoothed:
-                cache[l] = galerkin_sequence(gal[0], gal[1], gal[3], gal[4], gal[5], gal[6], gal[8], gal[9], cuI,
+            if self.mg.smoothed:     # destinations and the two prolongation entries
+                cache[l] = galerkin_sequence(gal[0], (gal[1], gal[3], gal[4]), gal[5], (gal[6], gal[8], gal[9]), cuI,
                                              n_coarse)
-            else:
-                cache[l] = galerkin_chunks(gal[0], gal[1], gal[3], gal[4], cuI, n_coarse)
+            else:                    # destinations and weights
+                cache[l] = galerkin_sequence(gal[0], (gal[1], gal[2]), gal[3], (gal[4], gal[5]), cuI, n_coarse)
         return cache[l]
 
     def coarse_dense(self) -> np.ndarray:
