@@ -219,6 +219,14 @@ class NumbaBackend(Backend):
 
         blocks_to_csr(bptr, blocks, data)
 
+    def block_matvec(self, blocks: np.ndarray, bptr: np.ndarray, bcols: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """``A x`` from the blocks themselves (the CSR product's numbers, without the CSR copy)."""
+        from .kernels.assembly import block_matvec
+
+        y = np.empty(len(x))
+        block_matvec(bptr, bcols, blocks, x, y)
+        return y
+
     def spring_lengths(self, x: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         from .kernels.springs import spring_lengths
 

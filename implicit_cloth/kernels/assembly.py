@@ -35,6 +35,22 @@ def blocks_to_csr(bptr, blocks, data):
 
 
 @njit(cache=True)
+def block_matvec(bptr, bcols, blocks, x, y):
+    """``y = A x`` from the (n_blocks, 3, 3) blocks in block-row order (``bptr``, columns ``bcols`` sorted): each
+    scalar row summed over its blocks, then each block's three columns, from 0 (scipy's CSR product of the same
+    matrix does the same additions in the same order, without fused multiply-adds: the same numbers)."""
+    for r in range(bptr.shape[0] - 1):
+        for a in range(3):
+            s = 0.0
+            for b in range(bptr[r], bptr[r + 1]):
+                c = 3 * bcols[b]
+                s += blocks[b, a, 0] * x[c]
+                s += blocks[b, a, 1] * x[c + 1]
+                s += blocks[b, a, 2] * x[c + 2]
+            y[3 * r + a] = s
+
+
+@njit(cache=True)
 def reset_diagonal(blocks, diag_index, diag):
     """``blocks[:] = 0`` then ``blocks[diag_index[i]] = diag[i] I`` for every vertex i."""
     blocks[:] = 0.0
