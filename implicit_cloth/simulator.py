@@ -129,8 +129,9 @@ class Simulator:
             self.model = Model(scene)
             solver_opts = scene.data["solver"]
             if solver_opts.get("preconditioner") == "auto":   # the multigrid for this cloth and its contacts
+                linear = not sim["adaptive"]["enabled"] and int(solver_opts.get("newton_iterations", 1)) <= 1
                 solver_opts = {**solver_opts, "preconditioner": auto_preconditioner(
-                    self.model, bool(scene.data["obstacles"]), self_collision(scene.data))}
+                    self.model, bool(scene.data["obstacles"]), self_collision(scene.data), linear)}
             self.integrator = make_integrator(self.integrator_name, self.model, solver_opts)
         x = self.model.rest_positions.copy()
         v = self.model.initial_velocity.copy()

@@ -210,9 +210,9 @@ def test_chunked_setup_kernels_give_the_serial_kernels_numbers():
 
 def test_auto_smooths_large_grid_cloths_only(monkeypatch, tmp_path):
     """``solver.preconditioner = "auto"`` (the default) runs the smoothed multigrid for a grid cloth from
-    AUTO_SMOOTHED_MIN_VERTICES vertices, from AUTO_SMOOTHED_CONTACT_MIN_VERTICES among obstacles, never with
-    self-collision, the plain one otherwise (smaller, a mesh cloth, or named explicitly); the report names the
-    one that ran."""
+    AUTO_SMOOTHED_MIN_VERTICES vertices, from AUTO_SMOOTHED_CONTACT_MIN_VERTICES among obstacles, from
+    AUTO_SMOOTHED_LINEAR_MIN_VERTICES when every step is one linear solve, never with self-collision, the plain
+    one otherwise (smaller, a mesh cloth, or named explicitly); the report names the one that ran."""
     import implicit_cloth.solvers as solvers
     from implicit_cloth.scene import DEFAULTS
 
@@ -237,6 +237,17 @@ def test_auto_smooths_large_grid_cloths_only(monkeypatch, tmp_path):
     assert ran(_scene(mesh=_mesh_file(tmp_path))) == "multigrid"          # 400 vertices, not a grid
     r = ic.Simulator(_scene(res=(12, 12)), dt=H).run(duration=0.05)
     assert r.report["solver"]["preconditioner"] == "multigrid_smoothed"
+    # every step one linear solve (fixed steps, one linearisation): from AUTO_SMOOTHED_LINEAR_MIN_VERTICES
+    assert solvers.AUTO_SMOOTHED_LINEAR_MIN_VERTICES == 64 * 64
+    monkeypatch.setattr(solvers, "AUTO_SMOOTHED_MIN_VERTICES", 10**6)
+    monkeypatch.setattr(solvers, "AUTO_SMOOTHED_LINEAR_MIN_VERTICES", 144)
+    fixed = dict(_scene(res=(12, 12)), simulation=dict(_scene(res=(12, 12)).get("simulation", {}),
+                                                       adaptive={"enabled": False}))
+    assert ran(_scene(res=(12, 12))) == "multigrid"                      # adaptive: the free threshold
+    assert ran(fixed) == "multigrid_smoothed"
+    assert ran(dict(fixed, cloth=dict(fixed["cloth"], resolution=[11, 11]))) == "multigrid"
+    assert ran(dict(fixed, solver={"newton_iterations": 2})) == "multigrid"   # Newton corrections: set-up each
+    assert ran(dict(fixed, collision={"self_collision": True})) == "multigrid"
 
 
 def _drape(n, preconditioner, accelerator):

@@ -14,9 +14,9 @@ PRECONDITIONERS.register("multigrid")
 PRECONDITIONERS.register("block_jacobi")
 PRECONDITIONERS.register("multigrid_smoothed")
 
-__all__ = ["AUTO_SMOOTHED_CONTACT_MIN_VERTICES", "AUTO_SMOOTHED_MIN_VERTICES", "BlockJacobi", "Filter",
-           "SolveResult", "auto_preconditioner", "filtered_pcg", "make_preconditioner", "numba_available",
-           "set_default_accelerator"]
+__all__ = ["AUTO_SMOOTHED_CONTACT_MIN_VERTICES", "AUTO_SMOOTHED_LINEAR_MIN_VERTICES", "AUTO_SMOOTHED_MIN_VERTICES",
+           "BlockJacobi", "Filter", "SolveResult", "auto_preconditioner", "filtered_pcg", "make_preconditioner",
+           "numba_available", "set_default_accelerator"]
 
 #: ``"auto"`` smooths the prolongations of a grid cloth without contacts from this many vertices (128²). Measured
 #: on the shared hanging scene (docs/benchmarks.md, "The refresh chunked by coarse rows"): one step a frame, one
@@ -30,15 +30,26 @@ AUTO_SMOOTHED_MIN_VERTICES = 16384
 #: its matrix, the smoothed multigrid takes about half the plain one's CG iterations a solve on the drape and
 #: the drape's run costs less: docs/benchmarks.md, "Coarse smoothers that contract".
 AUTO_SMOOTHED_CONTACT_MIN_VERTICES = 4096
+#: ... and of a free grid cloth from this many (64²) when every step is one linear solve (fixed steps, one
+#: linearisation: ``simulation.adaptive.enabled = false``, ``solver.newton_iterations = 1``). With the set-up's
+#: lists read in order (2026-12-06) the smoothed multigrid's 8 CG iterations a step beat the plain one's 15 on the
+#: shared 64² hanging cloth, one step a frame: 12.7 against 13.4-14.0 ms a frame on one thread, 9.3-9.4 against
+#: 10.9 on two; with the default step control it still lost on one thread (20.0 against 18.7-18.9: its Newton
+#: redos' corrections, 4-6 iterations each, pay a full set-up each). docs/benchmarks.md, "The smoothed set-up's
+#: passes over memory".
+AUTO_SMOOTHED_LINEAR_MIN_VERTICES = 4096
 
 
-def auto_preconditioner(model: Any, contacts: bool = False, self_collision: bool = False) -> str:
+def auto_preconditioner(model: Any, contacts: bool = False, self_collision: bool = False,
+                        linear_steps: bool = False) -> str:
     """What ``solver.preconditioner = "auto"`` (the default) runs for a model: ``"multigrid_smoothed"`` for a
     grid cloth of at least :data:`AUTO_SMOOTHED_MIN_VERTICES` vertices, or
-    :data:`AUTO_SMOOTHED_CONTACT_MIN_VERTICES` in a scene with obstacles (``contacts``), without
+    :data:`AUTO_SMOOTHED_CONTACT_MIN_VERTICES` in a scene with obstacles (``contacts``), or
+    :data:`AUTO_SMOOTHED_LINEAR_MIN_VERTICES` when every step is one linear solve (``linear_steps``), without
     ``self_collision`` (not measured there); else ``"multigrid"``."""
     grid = getattr(getattr(model, "geometry", None), "grid_shape", None) is not None
-    least = AUTO_SMOOTHED_CONTACT_MIN_VERTICES if contacts else AUTO_SMOOTHED_MIN_VERTICES
+    least = (AUTO_SMOOTHED_CONTACT_MIN_VERTICES if contacts
+             else AUTO_SMOOTHED_LINEAR_MIN_VERTICES if linear_steps else AUTO_SMOOTHED_MIN_VERTICES)
     return "multigrid_smoothed" if grid and not self_collision and model.n >= least else "multigrid"
 
 
