@@ -189,42 +189,61 @@ def pgalerkin_blocks(sd, su, od, ou, d_src, d_dst, d_pa, d_pb, d_cb, u_src, u_ds
 
 @njit(cache=True, fastmath={"contract"}, parallel=True)
 def pgalerkin_blocks_filter(sd, su, od, ou, d_src, d_dst, d_pa, d_pb, d_cb, u_src, u_dst, u_pa, u_pb, u_cb, pb,
-                            cpos, Sc, fuI, fuJ):
+                            cpos, Sc, fuI, fuJ, td, tu):
     """:func:`galerkin_blocks_filter` on threads, chunked as :func:`pgalerkin_blocks`: each chunk adds
-    ``filtered - unfiltered`` of the source blocks touching a constrained vertex through those of its entries,
-    in the serial kernel's order (the same numbers)."""
+    ``filtered - unfiltered`` of the source blocks touching a constrained vertex (``td``: diagonal blocks,
+    ``tu``: upper blocks, ascending) through those of its entries, in the serial kernel's order (the same
+    numbers). A chunk's entries come by source block (ascending), so each touching block's entries in the chunk
+    are one run, found by bisection: the chunk reads those entries only, not all of its own."""
     for k in prange(len(d_cb) - 1):
         B = np.empty(9)
         Y = np.empty(9)
         C = np.empty(9)
-        _filter_chunk(sd, od, ou, d_src, d_dst, d_pa, d_pb, d_cb[k], d_cb[k + 1], pb, cpos, Sc, fuI, fuJ,
-                      True, B, Y, C)
-        _filter_chunk(su, od, ou, u_src, u_dst, u_pa, u_pb, u_cb[k], u_cb[k + 1], pb, cpos, Sc, fuI, fuJ,
-                      False, B, Y, C)
+        _filter_runs(sd, od, ou, d_src, d_dst, d_pa, d_pb, d_cb[k], d_cb[k + 1], pb, cpos, Sc, fuI, fuJ, td,
+                     True, B, Y, C)
+        _filter_runs(su, od, ou, u_src, u_dst, u_pa, u_pb, u_cb[k], u_cb[k + 1], pb, cpos, Sc, fuI, fuJ, tu,
+                     False, B, Y, C)
+
+
+@njit(cache=True, inline="always")
+def _first_at_least(a, lo, hi, v):
+    """The first position in ``a[lo:hi]`` (ascending) whose value is at least ``v`` (``hi`` if none)."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if a[mid] < v:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
-def _filter_chunk(src, od, ou, esrc, dst, pa, pbi, lo, hi, pb, cpos, Sc, fuI, fuJ, diag, B, Y, C):
-    """The entries ``lo:hi`` of one list of :func:`pgalerkin_blocks_filter` whose source block touches a
-    constrained vertex (``diag``: the list of diagonal blocks, vertex ``s``; else upper block ``s``, vertices
-    ``fuI[s]``, ``fuJ[s]``): ``B`` its ``filtered - unfiltered``, ``Y`` formed again where the block or ``pa``
-    changes."""
-    last_s = -1
-    last_a = -1
-    for q in range(lo, hi):
-        s = esrc[q]
+def _filter_runs(src, od, ou, esrc, dst, pa, pbi, lo, hi, pb, cpos, Sc, fuI, fuJ, touch, diag, B, Y, C):
+    """The entries ``lo:hi`` of one list of :func:`pgalerkin_blocks_filter` whose source block is one of
+    ``touch`` (the blocks touching a constrained vertex: ``diag``, the list of diagonal blocks, vertex ``s``;
+    else upper block ``s``, vertices ``fuI[s]``, ``fuJ[s]``): ``B`` its ``filtered - unfiltered``, ``Y`` formed
+    again where ``pa`` changes within the block's run."""
+    q0 = lo
+    for t in range(len(touch)):
+        s = touch[t]
+        q0 = _first_at_least(esrc, q0, hi, s)
+        if q0 >= hi:
+            break
+        if esrc[q0] != s:
+            continue
         ci = cpos[s] if diag else cpos[fuI[s]]
         cj = cpos[s] if diag else cpos[fuJ[s]]
-        if ci < 0 and cj < 0:
-            continue
-        if s != last_s:
-            filter_delta(src, s, Sc, ci, cj, diag, B)
-        if s != last_s or pa[q] != last_a:
-            last_s = s
-            last_a = pa[q]
-            _pt_b(pb, 9 * last_a, B, 0, Y)
-        _y_p(Y, pb, 9 * pbi[q], C)
-        gal_add(C, dst[q], 1.0, od, ou)
+        filter_delta(src, s, Sc, ci, cj, diag, B)
+        last_a = -1
+        q = q0
+        while q < hi and esrc[q] == s:
+            if pa[q] != last_a:
+                last_a = pa[q]
+                _pt_b(pb, 9 * last_a, B, 0, Y)
+            _y_p(Y, pb, 9 * pbi[q], C)
+            gal_add(C, dst[q], 1.0, od, ou)
+            q += 1
+        q0 = q
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")

@@ -987,8 +987,10 @@ class _FusedHierarchy:
                 gargs: tuple[Any, ...] = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
                                           self.uv[u1:u2].reshape(-1)) + self._gal_chunks(l - 1) + (pb,)
                 _smoothed.pgalerkin_blocks(*gargs)
-                if l == 1 and len(c):
-                    _smoothed.pgalerkin_blocks_filter(*(gargs + (cpos, Sc, self.auI, self.auJ)))
+                if l == 1 and len(c):     # the fine blocks touching a constrained vertex: their correction
+                    td = np.flatnonzero(cpos >= 0)
+                    tu = np.flatnonzero((cpos[self.auI] >= 0) | (cpos[self.auJ] >= 0))
+                    _smoothed.pgalerkin_blocks_filter(*(gargs + (cpos, Sc, self.auI, self.auJ, td, tu)))
             else:
                 args = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
                         self.uv[u1:u2].reshape(-1), gal[0], gal[1], gal[2], gal[3], gal[4], gal[5])
