@@ -26,36 +26,45 @@ from .pcg import filter_delta, filtered_block, gal_add
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
-def _term_block(sd, su, code, Sc, cpos, f, uI, uJ, tmp, out):
-    """The block ``A[f, j]`` of a smoothing term: ``code = 3 k + kind`` with kind 0 the diagonal block ``k``,
-    1 the upper block ``k`` as stored, 2 the upper block ``k`` transposed (``j < f``); filtered
-    (``S_f A S_j + (I - S_f)`` on the diagonal) when ``cpos`` marks a constrained vertex."""
+def _add_term(sd, su, code, w, Sc, cpos, f, uI, uJ, tmp, B, acc):
+    """``acc += w A[f, j]`` for a smoothing term: ``code = 3 k + kind`` with kind 0 the diagonal block ``k``,
+    1 the upper block ``k`` as stored, 2 the upper block ``k`` transposed (``j < f``). A block no filter
+    touches is added from where it is stored; one where ``cpos`` marks a constrained vertex is filtered first
+    (``S_f A S_j + (I - S_f)`` on the diagonal; ``tmp``, ``B``: scratch)."""
     k = code // 3
     kind = code - 3 * k
+    j = f if kind == 0 else (uJ[k] if kind == 1 else uI[k])
+    if len(cpos) == 0 or (cpos[f] < 0 and cpos[j] < 0):
+        if kind == 0:
+            for m in range(9):
+                acc[m] += w * sd[9 * k + m]
+        elif kind == 1:
+            for m in range(9):
+                acc[m] += w * su[9 * k + m]
+        else:
+            for a in range(3):
+                for b in range(3):
+                    acc[3 * a + b] += w * su[9 * k + 3 * b + a]
+        return
     if kind == 0:
         for m in range(9):
             tmp[m] = sd[9 * k + m]
-        j = f
     elif kind == 1:
         for m in range(9):
             tmp[m] = su[9 * k + m]
-        j = uJ[k]
     else:
         for a in range(3):
             for b in range(3):
                 tmp[3 * a + b] = su[9 * k + 3 * b + a]
-        j = uI[k]
-    if len(cpos) and (cpos[f] >= 0 or cpos[j] >= 0):
-        filtered_block(tmp, 0, Sc, cpos[f], cpos[j], kind == 0, out)
-    else:
-        for m in range(9):
-            out[m] = tmp[m]
+    filtered_block(tmp, 0, Sc, cpos[f], cpos[j], kind == 0, B)
+    for m in range(9):
+        acc[m] += w * B[m]
 
 
 @njit(cache=True, fastmath={"contract"})
 def smooth_prolongation(sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, uJ, cpos, Sc, omega, out):
     """The blocks ``P[f, c]`` of the module docstring, for every entry of ``P0`` (CSR ``ptr``, values ``p0``;
-    its entry ``e``'s terms ``t_ptr[e]:t_ptr[e+1]``: block codes ``t_code`` (see :func:`_term_block`) with
+    its entry ``e``'s terms ``t_ptr[e]:t_ptr[e+1]``: block codes ``t_code`` (see :func:`_add_term`) with
     weights ``t_w = P0[j, c]``), from the level's diagonal (``sd``) and upper (``su``) blocks and its inverted
     (filtered) diagonal blocks ``dinv``; ``cpos``/``Sc``: the finest level's filter (empty elsewhere).
     Writes ``out`` (9 numbers an entry). A row whose block sum is singular keeps ``P0`` (times I)."""
@@ -86,26 +95,7 @@ def _smooth_rows(f0, f1, sd, su, dinv, ptr, p0, target, t_ptr, t_code, t_w, uI, 
             for m in range(9):
                 acc[m] = 0.0
             for t in range(t_ptr[e], t_ptr[e + 1]):
-                code = t_code[t]
-                k = code // 3
-                kind = code - 3 * k
-                w = t_w[t]
-                if len(cpos) == 0 or (cpos[f] < 0 and cpos[uJ[k] if kind == 1 else (uI[k] if kind == 2 else f)] < 0):
-                    # an unfiltered block, added from where it is stored (the same products as through B)
-                    if kind == 0:
-                        for m in range(9):
-                            acc[m] += w * sd[9 * k + m]
-                    elif kind == 1:
-                        for m in range(9):
-                            acc[m] += w * su[9 * k + m]
-                    else:
-                        for a in range(3):
-                            for b in range(3):
-                                acc[3 * a + b] += w * su[9 * k + 3 * b + a]
-                    continue
-                _term_block(sd, su, code, Sc, cpos, f, uI, uJ, tmp, B)
-                for m in range(9):
-                    acc[m] += w * B[m]
+                _add_term(sd, su, t_code[t], t_w[t], Sc, cpos, f, uI, uJ, tmp, B, acc)
             o = 9 * e
             for a in range(3):
                 for b in range(3):

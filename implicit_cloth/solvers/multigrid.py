@@ -970,9 +970,11 @@ class _FusedHierarchy:
             u0, u1, u2 = self.uoff[l - 1], self.uoff[l], self.uoff[l + 1]
             src_d, src_u = (self.adg, self.auv) if l == 1 else (self.dg[v0:v1], self.uv[u0:u1])
             gal = self._gal[l - 1]
-            if l == 1 and len(c):
+            if l == 1 and len(c):     # the constrained vertices' filters, and the fine blocks touching them
                 cpos = np.full(n0, -1, dtype=np.int64)
                 cpos[c] = np.arange(len(c))
+                td = np.flatnonzero(cpos >= 0)
+                tu = np.flatnonzero((cpos[self.auI] >= 0) | (cpos[self.auJ] >= 0))
             if mg.smoothed:           # the level's block prolongation from its current (filtered) matrix
                 spl = mg.sprol[l - 1]
                 pb = self.pval[9 * self.pnnz[l - 1]:9 * self.pnnz[l]]
@@ -987,9 +989,7 @@ class _FusedHierarchy:
                 gargs: tuple[Any, ...] = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
                                           self.uv[u1:u2].reshape(-1)) + self._gal_chunks(l - 1) + (pb,)
                 _smoothed.pgalerkin_blocks(*gargs)
-                if l == 1 and len(c):     # the fine blocks touching a constrained vertex: their correction
-                    td = np.flatnonzero(cpos >= 0)
-                    tu = np.flatnonzero((cpos[self.auI] >= 0) | (cpos[self.auJ] >= 0))
+                if l == 1 and len(c):     # the correction of the blocks touching a constrained vertex
                     _smoothed.pgalerkin_blocks_filter(*(gargs + (cpos, Sc, self.auI, self.auJ, td, tu)))
             else:
                 args = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
@@ -999,8 +999,6 @@ class _FusedHierarchy:
                 else:
                     _fused.galerkin(*args)
                 if l == 1 and len(c):     # the product of the filtered fine matrix S A S + (I - S)
-                    td = np.flatnonzero(cpos >= 0)
-                    tu = np.flatnonzero((cpos[self.auI] >= 0) | (cpos[self.auJ] >= 0))
                     _fused.galerkin_filter(*args, cpos, Sc, self.auI, self.auJ, td, tu)
             if l < L:
                 _fused.inv3(self.dg[v1:v2].reshape(-1), self.dinv[v1:v2].reshape(-1))
