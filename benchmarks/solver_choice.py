@@ -22,13 +22,19 @@ sweeps), ``W`` (a W-cycle), ``chebyshev2`` / ``chebyshev3`` (a Chebyshev polynom
 near-null space, interpolation that follows the cloth's shape; its setup is rebuilt per system). The true
 error is against a sparse direct solve of the filtered system. Cost: fine-level matrix passes per CG
 iteration (CG's product plus the V-cycle's, its coarse levels counted at their share of the fine level's
-blocks), the figure that decides time once the iterations are known (the compiled path's ms of the default
-lever are in ``scaling.py``/``vs_blender.py``; this script's numpy times are not a measure of anything).
+blocks), the figure that decides time once the iterations are known (this script's numpy times are not a
+measure of anything).
+
+The library's own preconditioners, compiled (``lib_multigrid``: the plain multigrid, which ``jacobi`` writes
+again in numpy; ``lib_smoothed``: the smoothed multigrid), solve the same systems where they were captured, on
+the model's live system matrix, as the integrator runs them: set-up and solve timed together (best of 3,
+``--threads`` threads), with their iterations and true error; for them the table gives ms instead of passes.
 
 Usage::
 
     python benchmarks/solver_choice.py --sizes 32 64            # ~10 min on 2 shared cores
     python benchmarks/solver_choice.py --sizes 32 64 128 256 --systems stiff
+    python benchmarks/solver_choice.py --sizes 128 256 --levers jacobi lib_multigrid lib_smoothed
 
 Writes ``OUT/solver_choice.{json,md}``. Never asserts.
 """
@@ -50,6 +56,9 @@ from implicit_cloth.solvers.blocks import inv3
 from implicit_cloth.solvers.multigrid import grid_prolongations
 from implicit_cloth.solvers.pcg import Filter, filtered_pcg
 
+#: the library's own preconditioners, compiled (numba), timed on the live system of the captured solve
+LIBRARY = {"lib_multigrid": "multigrid", "lib_smoothed": "multigrid_smoothed"}
+
 LEVERS = {
     "jacobi": {}, "jacobi2": {"nu": 2}, "W": {"cycle": "W"},
     "chebyshev2": {"smoother": "chebyshev", "degree": 2}, "chebyshev3": {"smoother": "chebyshev", "degree": 3},
@@ -58,9 +67,37 @@ LEVERS = {
 }
 
 
-def capture(kind: str, n: int, step: int, fixed: bool = False) -> dict:
+def library_solves(model, A, b: np.ndarray, z: np.ndarray, filters: dict, tol: float, library: list[str],
+                    repeats: int = 3) -> dict:
+    """The library's own compiled preconditioners (:data:`LIBRARY`) on the live system ``A`` (the model's
+    :class:`SystemMatrix`, as assembled for the captured solve) under each filter of ``filters``: set-up and
+    solve timed together as the integrator runs them (best of ``repeats``), its iterations and answer."""
+    from implicit_cloth.solvers import make_preconditioner
+
+    mass = np.repeat(model.masses, 3)
+    out = {}
+    for name in library:
+        pc = make_preconditioner(LIBRARY[name], model, "numba")
+        for key, filt in filters.items():
+            best = np.inf
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                pc.setup(model.system, filt)
+                dv, res = filtered_pcg(A, b, z, filt, pc, tol, 2000, mass=mass, rule=pc.stopping_rule)
+                if not res.converged and res.iterations < 2000 and pc.protect():   # as the integrator does
+                    dv, res = filtered_pcg(A, b, z, filt, pc, tol, 2000, mass=mass, rule=pc.stopping_rule)
+                best = min(best, time.perf_counter() - t0)
+            out[(name, key)] = {"dv": dv.copy(), "iterations": res.iterations, "converged": res.converged,
+                                "ms": 1e3 * best, "levels": pc.n_levels}
+    return out
+
+
+def capture(kind: str, n: int, step: int, fixed: bool = False, library: list[str] = (),
+            tol: float = 1e-3) -> dict:
     """The linear system of step ``step`` of a default run (first solve for ``stiff``, last for the others;
-    ``fixed``: one step a frame, no adaptive stepping), with the model's springs and the step's start positions."""
+    ``fixed``: one step a frame, no adaptive stepping), with the model's springs and the step's start positions;
+    with ``library``, the library's own preconditioners' solves of it (:func:`library_solves`; the drape's also
+    with its contact constraints removed)."""
     d = hanging_stiff(n, 1e4) if kind == "stiff" else peer_scene(kind, n, fixed=fixed)
     sim = ic.Simulator(ic.Scene.from_dict(d))
     integ = sim.integrator
@@ -69,8 +106,15 @@ def capture(kind: str, n: int, step: int, fixed: bool = False) -> dict:
 
     def spy(A, b, z, filt, info, guess=None, tolerance=None, **kw):
         # A is the model's SystemMatrix (finalized lazily): its CSR
-        rec.append({"A": sp.csr_array(getattr(A, "csr", A), copy=True), "b": b.reshape(-1).copy(), "z": z.reshape(-1).copy(),
-                    "filt": Filter(filt.n, filt.fixed.copy(), filt.partial.copy(), filt.partial_S.copy())})
+        r = {"A": sp.csr_array(getattr(A, "csr", A), copy=True), "b": b.reshape(-1).copy(),
+             "z": z.reshape(-1).copy(), "filt": Filter(filt.n, filt.fixed.copy(), filt.partial.copy(),
+                                                        filt.partial_S.copy())}
+        if library and (kind == "stiff" and not rec or kind != "stiff"):
+            filters = {"": filt}
+            if kind == "drape":
+                filters["free"] = Filter(filt.n, np.zeros(0, dtype=np.int64))
+            r["library"] = library_solves(sim.model, A, b.reshape(-1), z.reshape(-1), filters, tol, list(library))
+        rec.append(r)
         return orig(A, b, z, filt, info, guess, tolerance, **kw)
 
     sim.step(step - 1)
@@ -223,12 +267,22 @@ def direct(A, b: np.ndarray, z: np.ndarray, filt: Filter) -> np.ndarray:
     return zc + S @ spla.spsolve(K, S @ (b - A @ zc))
 
 
-def solve_all(sysd: dict, levers: list[str], tol: float, label: str) -> list[dict]:
+def solve_all(sysd: dict, levers: list[str], tol: float, label: str, key: str = "") -> list[dict]:
     A, b, z, filt = sysd["A"], sysd["b"], sysd["z"], sysd["filt"]
     Ps = grid_prolongations(*sysd["grid"])
     ref = direct(A, b, z, filt)
     rows = []
     for name in levers:
+        if name in LIBRARY:
+            lib = sysd["library"][(name, key)]
+            row = {"system": label, "n": sysd["n"], "lever": name, "iterations": lib["iterations"],
+                   "true_error": float(np.linalg.norm(lib["dv"] - ref) / np.linalg.norm(ref)),
+                   "converged": lib["converged"], "ms": lib["ms"], "levels": lib["levels"],
+                   "constrained": int(len(filt.fixed) + len(filt.partial))}
+            rows.append(row)
+            print(f"{label:16s} {sysd['n']:4d}² {name:11s} its {row['iterations']:4d}  true err "
+                  f"{row['true_error']:.1e}  {row['ms']:.2f} ms (compiled: set-up and solve)", flush=True)
+            continue
         t0 = time.perf_counter()
         try:
             pc = SmoothedAggregation(A, filt, sysd["x"]) if name == "sa_rigid" else VCycle(A, filt, Ps, **LEVERS[name])
@@ -252,7 +306,9 @@ def solve_all(sysd: dict, levers: list[str], tol: float, label: str) -> list[dic
 
 
 def markdown(res: dict) -> str:
-    out = [f"Iterations / true error of dv / fine-level matrix passes of the whole solve, tolerance {res['tolerance']:g}.",
+    out = [f"Iterations / true error of dv / fine-level matrix passes of the whole solve, tolerance {res['tolerance']:g}; "
+           f"the library's own preconditioners (`lib_multigrid`, `lib_smoothed`: compiled, "
+           f"{res.get('threads', 1)} thread(s)) give their set-up and solve's ms (best of 3) instead of passes.",
            ""]
     for label in dict.fromkeys(r["system"] for r in res["rows"]):
         rows = [r for r in res["rows"] if r["system"] == label]
@@ -264,6 +320,7 @@ def markdown(res: dict) -> str:
             for n in sizes:
                 r = next((r for r in rows if r["n"] == n and r["lever"] == lever), None)
                 cells.append("-" if r is None else "failed" if r.get("failed") else
+                             f"{r['iterations']} / {r['true_error']:.1e} / **{r['ms']:.1f} ms**" if "ms" in r else
                              f"{r['iterations']} / {r['true_error']:.1e} / {r['passes']:.0f}")
             out.append(f"| {lever} | " + " | ".join(cells) + " |")
         out.append("")
@@ -274,23 +331,31 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64])
     p.add_argument("--systems", nargs="+", default=["stiff", "hanging", "drape"], choices=["stiff", "hanging", "drape"])
-    p.add_argument("--levers", nargs="+", default=list(LEVERS), choices=list(LEVERS))
+    p.add_argument("--levers", nargs="+", default=list(LEVERS) + list(LIBRARY), choices=list(LEVERS) + list(LIBRARY))
+    p.add_argument("--threads", type=int, default=1, help="threads of the library's compiled solves (lib_*)")
     p.add_argument("--tolerance", type=float, default=1e-3)
     p.add_argument("--stiff-step", type=int, default=21)
     p.add_argument("--peer-step", type=int, default=120)
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     a = p.parse_args(argv)
+    library = [x for x in a.levers if x in LIBRARY]
+    if library:
+        from implicit_cloth import backend
+
+        backend.set_threads(a.threads)
     rows = []
     for kind in a.systems:
         for n in a.sizes:
-            sysd = capture(kind, n, a.stiff_step if kind == "stiff" else a.peer_step)
+            sysd = capture(kind, n, a.stiff_step if kind == "stiff" else a.peer_step, library=library,
+                           tol=a.tolerance)
             label = {"stiff": "stiff hanging (k = 1e4)", "hanging": "hanging (k = 1e3)", "drape": "drape, at rest"}[kind]
             rows += solve_all(sysd, a.levers, a.tolerance, label)
             if kind == "drape":
                 free = dict(sysd, filt=Filter(sysd["filt"].n, np.zeros(0, dtype=np.int64)))
-                rows += solve_all(free, ["jacobi"], a.tolerance, "drape, constraints removed")
+                rows += solve_all(free, [x for x in ["jacobi"] + library if x in a.levers or x == "jacobi"],
+                                  a.tolerance, "drape, constraints removed", key="free")
     res = {"benchmark": "solver_choice", "sizes": a.sizes, "tolerance": a.tolerance, "rows": rows,
-           "machine": machine()}
+           "machine": machine(), "threads": a.threads}
     md = markdown(res)
     write_outputs(Path(a.out), "solver_choice", res, md)
     print(md)
