@@ -330,6 +330,11 @@ def test_numba_float32_vcycle_matches_direct_solve(monkeypatch, tol):
     assert res.converged and np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= tol
     d3, z3 = dv.reshape(-1, 3), z.reshape(-1, 3)
     assert np.array_equal(d3[m.pinned], z3[m.pinned]) and d3[m.n // 2, 2] == z3[m.n // 2, 2]
+    # the smoothed multigrid keeps float64 at every size (its float32 levels broke down on a 256² drape)
+    sm = make_preconditioner("multigrid_smoothed", m, "numba")
+    sm.setup(None, filt)
+    assert sm.engine.precond_dtype == np.float64 and sm.engine.uv.dtype == np.float64
+    assert sm.engine.vu6.dtype == np.float64
 
 
 def test_run_report_names_the_accelerator_that_ran():

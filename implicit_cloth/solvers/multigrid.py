@@ -667,6 +667,13 @@ def smoother_damping(omega: float, lam: float, bound: float) -> float:
 #: took 7.5-7.8 instead of 8.8-9.0 ms at 192² and 13.6-13.9 instead of 16.0-16.6 ms at 256² (one thread;
 #: 9.8 instead of 10.1-11.3 on two), the same iterations; at 128² (everything in cache) the same time
 #: within the noise. ``None`` turns it off.
+#:
+#: The plain multigrid only: the smoothed one (``multigrid_smoothed``) keeps float64. Its prolongation's 3x3
+#: blocks mix the directions, and its float32 levels lose the modes only the mass holds (a flat sheet's
+#: out-of-plane motion, 1e-5 of the in-plane stiffness at 256²): on the shared drape at 256² its V-cycle turned
+#: indefinite, 88 of 557 solves broke down in the first 0.25 s (a free-falling sheet from its fifth step; 0 of
+#: 170 in float64, 83 s against 27), and on the hanging scene at 256² float64 was faster as well (130-134
+#: against 143-148 ms a frame, one step a frame on two threads, 12.6 against 13.0 CG iterations).
 FLOAT32_MIN_VERTICES: int | None = 32768
 
 
@@ -839,7 +846,7 @@ class _FusedHierarchy:
         systems = mg._systems()
         fine = mg.fine
         self.voff = np.cumsum([0] + [sm.n for sm in systems]).astype(np.int64)
-        f = self.precond_dtype = (np.float32 if FLOAT32_MIN_VERTICES is not None
+        f = self.precond_dtype = (np.float32 if FLOAT32_MIN_VERTICES is not None and not mg.smoothed
                                   and fine.n >= FLOAT32_MIN_VERTICES else np.float64)
         self._uidx = [np.flatnonzero(sm.block_rows < sm.block_cols) for sm in systems]
         nup = [len(u) for u in self._uidx]
