@@ -352,8 +352,7 @@ def main(argv: list[str] | None = None) -> int:
             rows += solve_all(sysd, a.levers, a.tolerance, label)
             if kind == "drape":
                 free = dict(sysd, filt=Filter(sysd["filt"].n, np.zeros(0, dtype=np.int64)))
-                rows += solve_all(free, [x for x in ["jacobi"] + library if x in a.levers or x == "jacobi"],
-                                  a.tolerance, "drape, constraints removed", key="free")
+                rows += solve_all(free, ["jacobi"] + library, a.tolerance, "drape, constraints removed", key="free")
     res = {"benchmark": "solver_choice", "sizes": a.sizes, "tolerance": a.tolerance, "rows": rows,
            "machine": machine(), "threads": a.threads}
     md = markdown(res)
