@@ -109,7 +109,7 @@ def capture(kind: str, n: int, step: int, fixed: bool = False, library: list[str
         r = {"A": sp.csr_array(getattr(A, "csr", A), copy=True), "b": b.reshape(-1).copy(),
              "z": z.reshape(-1).copy(), "filt": Filter(filt.n, filt.fixed.copy(), filt.partial.copy(),
                                                         filt.partial_S.copy())}
-        if library and (kind == "stiff" and not rec or kind != "stiff"):
+        if library and (kind != "stiff" or not rec):     # stiff: its first solve only
             filters = {"": filt}
             if kind == "drape":
                 filters["free"] = Filter(filt.n, np.zeros(0, dtype=np.int64))
