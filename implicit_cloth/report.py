@@ -118,10 +118,13 @@ class SolverReport(Record):
     #: True when a CG breakdown made the multigrid damp its coarse smoothers to their matrices for the rest of
     #: the run (``Multigrid.protect``); absent otherwise
     smoothers_damped: bool | None = None
+    #: the multigrid's cycle (``solver.cycle``: "V" or "K"); None without a multigrid (block Jacobi) and in
+    #: reports written before it existed
+    cycle: str | None = None
 
     OPTIONAL_KEYS: ClassVar[frozenset[str]] = frozenset({"contact_tolerance", "mean_attempted_solves",
                                                          "mean_attempted_iterations", "threading_layer",
-                                                         "smoothers_damped"})
+                                                         "smoothers_damped", "cycle"})
 
 
 @dataclass

@@ -41,7 +41,8 @@ PLANES: tuple[str, ...] = ("xy", "xz", "yz")
 
 DEFAULTS: dict[str, dict[str, Any]] = {
     "simulation": {"integrator": "backward_euler", "dt": 0.01, "duration": 1.0, "frame_rate": 30.0},
-    "solver": {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "auto", "newton_iterations": 1},
+    "solver": {"tolerance": 1e-3, "max_iterations": 1000, "preconditioner": "auto", "newton_iterations": 1,
+               "cycle": "V"},
 }
 
 TOP_KEYS = ("simulation", "solver", "cloth", "effects", "obstacles", "collision")
@@ -54,7 +55,10 @@ ADAPTIVE_DEFAULTS: dict[str, Any] = {"max_halvings": 5, "grow_after": 4, "max_st
 STRAIN_LIMIT_KEYS = ("max_strain", "iterations", "tethers", "max_compression")
 #: Most halvings of the step (dt / 2^30 is below a nanosecond for dt = 1 s).
 MAX_HALVINGS = 30
-SOLVER_KEYS = ("tolerance", "contact_tolerance", "max_iterations", "preconditioner", "newton_iterations")
+SOLVER_KEYS = ("tolerance", "contact_tolerance", "max_iterations", "preconditioner", "newton_iterations", "cycle")
+#: ``solver.cycle``: the multigrid's V-cycle, or Notay's K-cycle (flexible CG on every coarse level; see
+#: :func:`implicit_cloth.kernels.pcg.kcycle`)
+CYCLES = ("V", "K")
 #: Most Newton iterations per step.
 MAX_NEWTON_ITERATIONS = 100
 CLOTH_KEYS = (
@@ -173,6 +177,11 @@ def _solver(d: Mapping[str, Any]) -> dict[str, Any]:
     if "newton_iterations" in d:
         out["newton_iterations"] = integer("solver.newton_iterations", d["newton_iterations"], lo=1,
                                            hi=MAX_NEWTON_ITERATIONS)
+    if "cycle" in d:
+        out["cycle"] = choice("solver.cycle", d["cycle"], CYCLES)
+        if out["cycle"] != "V" and out["preconditioner"] == "block_jacobi":
+            raise fail("solver.cycle", "is a multigrid's cycle; solver.preconditioner = \"block_jacobi\" has none",
+                       d["cycle"])
     return out
 
 

@@ -653,6 +653,7 @@ class _Recorder:
                 "contact_tolerance": integ.contact_tolerance,
                 "max_iterations_allowed": integ.max_iterations,
                 "preconditioner": integ.precond.name,
+                "cycle": getattr(integ.precond, "cycle", None),
                 # which implementation ran the preconditioned CG: "numba" (the fast extra) or "numpy"
                 "accelerator": getattr(integ.precond, "accelerator", "numpy"),
                 "newton_iterations": integ.newton_iterations,

@@ -196,6 +196,11 @@ class ImplicitIntegrator(Integrator):
         #: Newton iterations of a step (1: one linearisation, BW98); a caller may ask for more per step
         self.newton_iterations = int(opts["newton_iterations"])
         self.precond = make_preconditioner(opts["preconditioner"], model)
+        if opts.get("cycle", "V") != "V":
+            if not hasattr(self.precond, "cycle"):
+                raise ValueError(f"solver.cycle = {opts['cycle']!r} needs a multigrid preconditioner, not "
+                                 f"{self.precond.name!r}")
+            self.precond.cycle = opts["cycle"]
         self._mass3 = np.repeat(model.masses, 3)
         self._pins = Constraints.of_pins(model)
         self._lin: _Linearization | None = None

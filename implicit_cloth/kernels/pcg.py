@@ -23,7 +23,10 @@ call per vector operation:
 * the coarsest level is solved with the upper Cholesky factor ``U``
   (``A_c = U^T U``), or a dense inverse when no factor is available;
 * CG's vector updates, dot products and the error estimate of the stopping
-  rule are fused loops.
+  rule are fused loops;
+* ``solver.cycle = "K"``: the K-cycle (:func:`kcycle`) instead of the V-cycle, the same
+  passes on every level but each coarse correction one or two flexible-CG iterations on
+  the next level, and CG then flexible (:func:`pcg`'s ``kthreshold``).
 
 Floating-point contraction (fused multiply-add) is allowed (``fastmath={"contract"}``:
 no reassociation, NaN and infinity kept): the V-cycle got 12-18 % faster at 128².
@@ -610,6 +613,142 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
 
 
 @njit(cache=True, fastmath={"contract"})
+def _vdot(x, y):
+    """``x . y``, one serial sum (the K-cycle's coarse levels: the same numbers at every thread count)."""
+    s = 0.0
+    for k in range(len(x)):
+        s += x[k] * y[k]
+    return s
+
+
+@njit(cache=True, fastmath={"contract"})
+def kcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
+           pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
+           wb, wx, wr, kc, kv, kstage, kcoef, threshold):
+    """One K-cycle (Notay & Vassilevski 2008; Notay's AGMG): :func:`vcycle`'s smoothing and transfers, but the
+    coarse correction of every level l whose next level is not the coarsest is one or two iterations of
+    flexible CG on level ``l + 1``'s matrix from zero, preconditioned by level ``l + 1``'s own cycle (the same,
+    recursively); the second iteration is skipped when the first leaves ``|r1| <= threshold |r|``. Not a
+    fixed linear operator: the outer CG must be flexible (:func:`pcg` with ``kthreshold >= 0``).
+
+    Written as a loop over an explicit descent (each level's cycle may run twice per coarse correction of the
+    level above): ``kstage[m]`` is the K-step of level m's progress (0: its first cycle, 1: its second), its
+    first cycle's result kept in ``kc`` and that times level m's matrix in ``kv`` (both laid out as ``wb``),
+    ``kcoef[2 m], kcoef[2 m + 1]`` the first iteration's ``c1 . A c1`` and ``c1 . r``. A level's right-hand side
+    (``wb``) is the K-step's residual: the second cycle's is ``r1 = r - (c1 . r / c1 . A c1) A c1``. A level's
+    cycle leaves its result in ``wr`` (the finest in ``out``), where the K-step combines its two.
+    """
+    L = len(voff) - 2
+    if L == 0:
+        _coarse_solve(C, upper, b, out)
+        return
+    blk = len(pval) == 9 * len(pidx)
+    l = 0
+    down = True
+    while True:
+        if down:                                   # level l's cycle: pre-smooth, residual, restrict
+            nc = voff[l + 2] - voff[l + 1]
+            bl = b if l == 0 else wb[3 * voff[l]:3 * voff[l + 1]]
+            x = wx[3 * voff[l]:3 * voff[l + 1]]
+            r = wr[3 * voff[l]:3 * voff[l + 1]]
+            d = dinv[voff[l]:voff[l + 1]]
+            tp = tptr[toff[l]:toff[l] + nc + 1]
+            ti = tidx[pnnz[l]:pnnz[l + 1]]
+            tv = tval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else tval[pnnz[l]:pnnz[l + 1]]
+            par = bool(lpar[l])
+            _presmooth(d, omegas[l], bl, x, par)
+            _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, r, lpar, lpv, lpb, pbb)
+            _sub(bl, r, par)
+            _transfer(tp, ti, tv, r, wb[3 * voff[l + 1]:3 * voff[l + 2]], False, bool(lpar[l + 1]))
+            if l + 1 == L:
+                _coarse_solve(C, upper, wb[3 * voff[L]:3 * voff[L + 1]], wx[3 * voff[L]:3 * voff[L + 1]])
+                down = False
+            else:
+                l += 1
+                kstage[l] = 0
+            continue
+        # level l's cycle, after its coarse correction: prolongate it, post-smooth
+        n = voff[l + 1] - voff[l]
+        bl = b if l == 0 else wb[3 * voff[l]:3 * voff[l + 1]]
+        x = wx[3 * voff[l]:3 * voff[l + 1]]
+        y = out if l == 0 else wr[3 * voff[l]:3 * voff[l + 1]]
+        xc = wx[3 * voff[L]:3 * voff[L + 1]] if l + 1 == L else wr[3 * voff[l + 1]:3 * voff[l + 2]]
+        d = dinv[voff[l]:voff[l + 1]]
+        pp = pptr[poff[l]:poff[l] + n + 1]
+        pi = pidx[pnnz[l]:pnnz[l + 1]]
+        pv = pval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else pval[pnnz[l]:pnnz[l + 1]]
+        par = bool(lpar[l])
+        _transfer(pp, pi, pv, xc, x, True, par)
+        _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, lpar, lpv, lpb, pbb)
+        _smooth(d, omegas[l], bl, x, y, par)
+        if l == 0:
+            return
+        # level m = l's cycle done, its result c in wr: the K-step of level m goes on
+        m = l
+        l = m - 1                                  # unless the second cycle is run: back to the level above
+        lo, hi = 3 * voff[m], 3 * voff[m + 1]
+        c = wr[lo:hi]
+        rm = wb[lo:hi]
+        c1 = kc[lo:hi]
+        v1 = kv[lo:hi]
+        if kstage[m] == 0:
+            for k in range(hi - lo):
+                c1[k] = c[k]
+            _apply_level(m, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, c1, v1, lpar, lpv, lpb, pbb)
+            rho1 = _vdot(c1, v1)
+            if not rho1 > 0.0:                     # no descent: the cycle's result as it is
+                continue
+            a1 = _vdot(c1, rm)
+            g1 = a1 / rho1
+            rr = _vdot(rm, rm)
+            r1 = 0.0
+            for k in range(hi - lo):               # the residual after the first iteration, in place
+                rm[k] -= g1 * v1[k]
+                r1 += rm[k] * rm[k]
+            if r1 <= threshold * threshold * rr:
+                for k in range(hi - lo):
+                    c[k] = g1 * c1[k]
+                continue
+            kcoef[2 * m] = rho1
+            kcoef[2 * m + 1] = a1
+            kstage[m] = 1
+            l = m                                  # level m's cycle again, on r1
+            down = True
+        else:
+            rho1 = kcoef[2 * m]
+            a1 = kcoef[2 * m + 1]
+            v2 = wx[lo:hi]                         # (level m's iterate: free once its cycle is done)
+            _apply_level(m, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, c, v2, lpar, lpv, lpb, pbb)
+            gm = _vdot(c, v1)
+            beta = _vdot(c, v2) - gm * gm / rho1
+            a2 = _vdot(c, rm)
+            kstage[m] = 0
+            if beta > 0.0:
+                f1 = a1 / rho1 - gm * a2 / (rho1 * beta)
+                f2 = a2 / beta
+                for k in range(hi - lo):
+                    c[k] = f1 * c1[k] + f2 * c[k]
+            else:                                  # the second direction adds nothing: the first iteration's
+                for k in range(hi - lo):
+                    c[k] = (a1 / rho1) * c1[k]
+
+
+@njit(cache=True, fastmath={"contract"})
+def _precondition(r, s, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
+                  pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
+                  wb, wx, wr, kc, kv, kstage, kcoef, kthreshold):
+    """``s = B r``: the V-cycle, or the K-cycle when ``kthreshold >= 0``."""
+    if kthreshold >= 0.0:
+        kcycle(r, s, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
+               pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
+               wb, wx, wr, kc, kv, kstage, kcoef, kthreshold)
+    else:
+        vcycle(r, s, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
+               pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
+               wb, wx, wr)
+
+
+@njit(cache=True, fastmath={"contract"})
 def smoother_lanczos(l, dg, uI, uJ, uv, voff, uoff, dinv, q, alpha, beta):
     """Lanczos on ``D^-1 A`` of the (unfiltered, coarse) level ``l`` in the ``D`` inner product, from ``q``
     (overwritten), ``len(alpha)`` steps at most: the tridiagonal matrix's diagonal in ``alpha`` and its
@@ -668,7 +807,7 @@ def _dnorm2(d, x):
 def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, Sc, dinv,
         pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
         b, z, guess, use_guess, mass, use_mass, tol, max_iterations, bound_only, min_delay, delay_fraction,
-        sum_chunks):
+        sum_chunks, kthreshold=-1.0):
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
 
     ``adg``, ``auI``, ``auJ``, ``auv``: the fine matrix (unfiltered, float64, symmetric storage of
@@ -681,6 +820,10 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     ``sum_chunks``: fixed bounds of the chunks CG's dot products are summed over (each chunk's partial sum,
     on threads when the finest level's passes are, then the partials in order: the same numbers at every
     thread count); empty for one plain serial sum.
+
+    ``kthreshold``: below 0 the V-cycle (:func:`vcycle`); else the K-cycle (:func:`kcycle`, that threshold), and
+    CG flexible: ``beta = -s_new . A p / p . A p`` (Polak-Ribiere's, equal to Fletcher-Reeves' with a fixed
+    preconditioner, since ``r_new - r = -alpha A p``), ``p`` then A-orthogonal to the last direction only.
 
     Returns ``(dv, iterations, residual, converged, error)``.
     """
@@ -715,9 +858,14 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     if norm0 == 0.0:
         return dv, 0, 0.0, True, 0.0
     s = np.empty(N)
-    vcycle(r, s, dg, uI, uJ, uv, vu6, use6, voff, uoff, clist, Sc, ws, dinv,
-           pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
-           wb, wx, wr)
+    flexible = kthreshold >= 0.0
+    kc = np.zeros(Ntot if flexible else 0)
+    kv = np.zeros(Ntot if flexible else 0)
+    kstage = np.zeros(len(voff), dtype=np.int64)
+    kcoef = np.zeros(2 * len(voff))
+    _precondition(r, s, dg, uI, uJ, uv, vu6, use6, voff, uoff, clist, Sc, ws, dinv,
+                  pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
+                  wb, wx, wr, kc, kv, kstage, kcoef, kthreshold)
     filter_vec(clist, Sc, s)
     p = s.copy()
     q = np.empty(N)
@@ -739,9 +887,9 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
         ad[it] = alpha * delta
         pw[it] = pp / pq
         it += 1
-        vcycle(r, s, dg, uI, uJ, uv, vu6, use6, voff, uoff, clist, Sc, ws, dinv,
-               pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
-           wb, wx, wr)
+        _precondition(r, s, dg, uI, uJ, uv, vu6, use6, voff, uoff, clist, Sc, ws, dinv,
+                      pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
+                      wb, wx, wr, kc, kv, kstage, kcoef, kthreshold)
         filter_vec(clist, Sc, s)
         delta_new = _dot(r, s, cb, par, sums)
         if delta_new < -1e-30 * delta0:     # breakdown: the preconditioner is not positive definite
@@ -758,7 +906,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
                 error = error_estimate(ad, pw, it, dd, d)
                 converged = error <= tol
         if not converged:
-            beta = delta_new / delta
+            beta = -_dot(s, q, cb, par, sums) / pq if flexible else delta_new / delta
             _p_update(p, s, beta, par)
         delta = delta_new
     _msymmv(adg, auI, auJ, auv, au6, False, part, dv, q)

@@ -116,6 +116,11 @@ def aggregation_prolongations(n: int, edges: np.ndarray, min_vertices: int = 100
 
 
 # ----------------------------------------------------------------------------- hierarchy
+#: The K-cycle's coarse correction skips its second flexible-CG iteration when the first left the level's
+#: residual at most this fraction of its right-hand side (Notay's AGMG: 0.25).
+K_THRESHOLD = 0.25
+
+
 class _Level:
     """One coarse level: its block pattern, Galerkin map from the level above, transfer and smoother."""
 
@@ -257,6 +262,9 @@ class Multigrid:
         self.name = name
         self.omega = float(omega)
         self.smoothed = bool(smoothed)
+        #: the cycle (``solver.cycle``): "V", or "K" (Notay's K-cycle, :func:`implicit_cloth.kernels.pcg.kcycle`:
+        #: not a fixed linear operator, so CG runs flexible with it, :attr:`flexible`)
+        self.cycle = "V"
         self.p_omega = float(p_omega)
         self.fine = system
         #: the back-end: the system's (the model's) unless one is named; numba runs the packed hierarchy
@@ -290,6 +298,12 @@ class Multigrid:
         self.coarse_shift = 0.0
         self.engine: _NumpyHierarchy | _FusedHierarchy = (
             _FusedHierarchy(self, prolongations) if self.backend.compiled else _NumpyHierarchy(self))
+
+    @property
+    def flexible(self) -> bool:
+        """Whether the preconditioner varies with its argument (the K-cycle): CG's ``beta`` is then Polak-Ribiere's
+        (:func:`~implicit_cloth.solvers.pcg.filtered_pcg`)."""
+        return self.cycle == "K"
 
     @property
     def accelerator(self) -> str:
@@ -465,9 +479,37 @@ class _NumpyHierarchy:
             return mg.coarse_solve(b)
         A, D, w = mg._A[l], self._D[l], mg.level_omega[l]
         x = w * (D @ b)                                   # pre-smooth from x = 0
-        x += self.P3[l] @ self._vcycle(l + 1, self.R3[l] @ (b - A @ x))
+        rc = self.R3[l] @ (b - A @ x)
+        if mg.cycle == "K" and l + 1 < len(mg.levels):
+            x += self.P3[l] @ self._kstep(l + 1, rc)
+        else:
+            x += self.P3[l] @ self._vcycle(l + 1, rc)
         x += w * (D @ (b - A @ x))                        # post-smooth
         return x
+
+    def _kstep(self, m: int, r: np.ndarray) -> np.ndarray:
+        """The K-cycle's coarse correction on level ``m`` (Notay & Vassilevski 2008, Algorithm 2.1): one or two
+        flexible-CG iterations on ``A_m x = r`` from zero, preconditioned by level ``m``'s cycle; the second is
+        skipped when the first leaves ``|r1| <= K_THRESHOLD |r|`` (the compiled :func:`~implicit_cloth.kernels.pcg.
+        kcycle` in the same order)."""
+        A = self.mg._A[m]
+        c1 = self._vcycle(m, r)
+        v1 = A @ c1
+        rho1 = float(c1 @ v1)
+        if not rho1 > 0.0:
+            return c1
+        a1 = float(c1 @ r)
+        r1 = r - (a1 / rho1) * v1
+        if float(r1 @ r1) <= K_THRESHOLD ** 2 * float(r @ r):
+            return (a1 / rho1) * c1
+        c2 = self._vcycle(m, r1)
+        v2 = A @ c2
+        g = float(c2 @ v1)
+        beta = float(c2 @ v2) - g * g / rho1
+        a2 = float(c2 @ r1)
+        if not beta > 0.0:
+            return (a1 / rho1) * c1
+        return (a1 / rho1 - g * a2 / (rho1 * beta)) * c1 + (a2 / beta) * c2
 
 
 def coarse_cholesky(C: np.ndarray, max_tries: int = 40) -> tuple[tuple[np.ndarray, bool], float]:
@@ -1091,7 +1133,12 @@ class _FusedHierarchy:
 
         r = np.ascontiguousarray(r, dtype=float)
         out = np.empty_like(r)
-        _fused.vcycle(r, out, *self._hier(), self.wb, self.wx, self.wr)
+        if self.mg.cycle == "K":
+            L = len(self.voff)
+            _fused.kcycle(r, out, *self._hier(), self.wb, self.wx, self.wr, np.zeros_like(self.wb),
+                          np.zeros_like(self.wb), np.zeros(L, dtype=np.int64), np.zeros(2 * L), K_THRESHOLD)
+        else:
+            _fused.vcycle(r, out, *self._hier(), self.wb, self.wx, self.wr)
         return out
 
     def pcg(self, A, b, z, filt, tol=1e-3, max_iterations=1000, guess=None, mass=None, rule="estimate",
@@ -1115,7 +1162,8 @@ class _FusedHierarchy:
             h.C, h.upper, h.omegas, h.lpar, h.lpv, h.lpb, h.pbb,
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
             f(mass) if mass is not None else np.zeros(0), mass is not None, float(tol), int(max_iterations),
-            rule == "bound", int(min_delay), float(delay_fraction), self.sum_chunks)
+            rule == "bound", int(min_delay), float(delay_fraction), self.sum_chunks,
+            K_THRESHOLD if self.mg.cycle == "K" else -1.0)
         return dv, SolveResult(int(it), float(res), bool(conv), float(err))
 
 

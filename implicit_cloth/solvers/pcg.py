@@ -235,6 +235,7 @@ def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: fl
     if norm0 == 0.0:
         return dv, SolveResult(0, 0.0, True)
     s = filt.apply(precond.apply(r))
+    flexible = bool(getattr(precond, "flexible", False))
     p = s.copy()
     delta = float(r @ s)
     delta0 = delta
@@ -270,7 +271,9 @@ def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: fl
                 error = current_error_estimate(ad, pw, it, float(dv @ dv), d)
                 converged = error <= tol
         if not converged:
-            p *= delta_new / delta
+            # a preconditioner that varies with its argument (the K-cycle): Polak-Ribiere's beta, with
+            # r_new - r = -alpha q equal to -s_new . q / p . q (Fletcher-Reeves' for a fixed one)
+            p *= -float(s @ q) / pq if flexible else delta_new / delta
             p += s
         delta = delta_new
     res = float(np.linalg.norm(filt.apply(b - A @ dv))) / norm0
