@@ -32,7 +32,8 @@ matrices of the filtered fine matrix ``S A S + (I - S)``, dense Cholesky at the 
   row sum restored to ``P0``'s (the library's ``multigrid_smoothed``, there with ``w = 0.7``: ``spr_sum_w07``;
   ``spr_sum_w05``, ``spr_sum_inf`` (``w`` from the bound ``||D^-1 A||_inf``), ``spr_sum_w07_raw`` (the finest
   level smoothed with the unfiltered matrix)); ``spr_scalar``: a scalar smoothing of the block traces,
-  ``P kron I3`` kept. ``galerkin`` (printed) counts the scipy set-up's multiplications, ``block refresh`` those
+  ``P kron I3`` kept; ``spr_sum_w07_Wc`` / ``spr_sum_w07_W`` / ``spr_sum_w07_K``: ``spr_sum_w07`` with the ``Wc`` /
+  ``W`` / ``K`` cycles (the K-cycle the library runs with ``solver.cycle = "K"``). ``galerkin`` (printed) counts the scipy set-up's multiplications, ``block refresh`` those
   of a fixed-pattern refresh with block prolongations, both in fine SpMVs;
 * ``K``, ``K2``, ``K_gs``: the K-cycle (Notay & Vassilevski 2008, as in Notay's AGMG): on every coarse level but
   the coarsest, the coarse correction is one or two iterations of flexible CG (FCG(1)) on that level's Galerkin
@@ -104,6 +105,9 @@ VARIANTS: dict[str, dict] = {
     "spr_sum_w05": {"smooth_p": "all", "restrict_p": "sum", "p_omega": 0.5},
     "spr_sum_w07": {"smooth_p": "all", "restrict_p": "sum", "p_omega": 0.7},
     "spr_sum_w07_raw": {"smooth_p": "all", "restrict_p": "sum", "p_omega": 0.7, "p_raw_fine": True}, "spr_sum2": {"smooth_p": "two", "restrict_p": "sum"},
+    "spr_sum_w07_Wc": {"smooth_p": "all", "restrict_p": "sum", "p_omega": 0.7, "cycle": "Wc"},
+    "spr_sum_w07_W": {"smooth_p": "all", "restrict_p": "sum", "p_omega": 0.7, "cycle": "W"},
+    "spr_sum_w07_K": {"smooth_p": "all", "restrict_p": "sum", "p_omega": 0.7, "cycle": "K", "threshold": 0.25},
 }
 
 
@@ -126,7 +130,7 @@ def capture(n: int, k: float, steps: list[int]) -> list[dict]:
 
     def spy(A, b, z, filt, info, guess=None, tolerance=None, **kw):
         if cur["step"] in want:
-            A0, b0, z0 = sp.csr_array(A, copy=True), b.reshape(-1).copy(), z.reshape(-1).copy()
+            A0, b0, z0 = sp.csr_array(getattr(A, "csr", A), copy=True), b.reshape(-1).copy(), z.reshape(-1).copy()
             f0 = Filter(filt.n, filt.fixed.copy(), filt.partial.copy(), filt.partial_S.copy())
             lib.setup(model.system, f0)
             _, res = filtered_pcg(A0, b0, z0, f0, lib, integ.tolerance, 5000, mass=mass3, compiled=False)

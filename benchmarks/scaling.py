@@ -59,9 +59,17 @@ H = 1 / 60
 ADAPTIVE = False
 
 
+#: the timed series: a preconditioner, or a multigrid with ``+K`` for its K-cycle (``solver.cycle = "K"``)
+SERIES = ["multigrid", "multigrid_smoothed", "block_jacobi", "multigrid+K", "multigrid_smoothed+K"]
+
+
 def stiff(n: int, k: float, preconditioner: str = "multigrid", tolerance: float | None = None) -> dict:
-    """The hanging stiff cloth with this benchmark's step control (fixed steps unless ``--adaptive``)."""
-    d = hanging_stiff(n, k, preconditioner, tolerance)
+    """The hanging stiff cloth with this benchmark's step control (fixed steps unless ``--adaptive``);
+    ``preconditioner`` one of :data:`SERIES` (``name+K``: that multigrid with the K-cycle)."""
+    name, _, cycle = preconditioner.partition("+")
+    d = hanging_stiff(n, k, name, tolerance)
+    if cycle:
+        d["solver"]["cycle"] = cycle
     if not ADAPTIVE:
         d["simulation"]["adaptive"] = {"enabled": False}
     return d
@@ -243,7 +251,7 @@ def big_worker(n: int, k: float, steps: int, warmup: int, memory_gb: float, prec
             "ms_step": 1e3 * med(0), "iterations_median": med(1), "ms_assembly": 1e3 * med(2),
             "ms_setup": 1e3 * med(3), "ms_solve": 1e3 * med(4), "setup_s": setup,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-            "levels": sim.integrator.precond.n_levels, "preconditioner": sim.integrator.precond.name}
+            "levels": sim.integrator.precond.n_levels, "preconditioner": preconditioner}
 
 
 def fit_exponent(rows: list[dict]) -> float | None:
@@ -457,7 +465,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128, 256])
     p.add_argument("--ks", type=float, nargs="+", default=[1e4, 1e3])
     p.add_argument("--preconditioners", nargs="+", default=["multigrid", "block_jacobi"],
-                   choices=["multigrid", "multigrid_smoothed", "block_jacobi"])
+                   choices=SERIES, help="name+K: that multigrid with the K-cycle (solver.cycle = \"K\")")
     p.add_argument("--accelerators", nargs="+", default=["auto"], choices=["auto", "numba", "numpy"],
                    help="multigrid implementations to time (auto: numba if installed); the first is the default "
                         "series, e.g. --accelerators numba numpy for the speed-up of the compiled path")
@@ -486,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--big-sizes", type=int, nargs="*", default=[],
                    help="sizes run in a process each for ms/step and peak memory (e.g. 512 1024)")
     p.add_argument("--big-steps", type=int, default=3)
-    p.add_argument("--big-preconditioner", default="multigrid", choices=["multigrid", "multigrid_smoothed"],
+    p.add_argument("--big-preconditioner", default="multigrid", choices=[c for c in SERIES if c != "block_jacobi"],
                    help="the preconditioner of the --big-sizes runs, the thread comparison and the exponent fitted "
                         "to the largest size (with the timed sizes' rows of the same preconditioner)")
     p.add_argument("--big-warmup", type=int, default=None,
