@@ -26,7 +26,8 @@ blocks), the figure that decides time once the iterations are known (this script
 measure of anything).
 
 The library's own preconditioners, compiled (``lib_multigrid``: the plain multigrid, which ``jacobi`` writes
-again in numpy; ``lib_smoothed``: the smoothed multigrid), solve the same systems where they were captured, on
+again in numpy; ``lib_smoothed``: the smoothed multigrid; ``lib_smoothed_K``: the same with the K-cycle,
+``solver.cycle = "K"``), solve the same systems where they were captured, on
 the model's live system matrix, as the integrator runs them: set-up and solve timed together (best of 3,
 ``--threads`` threads), with their iterations and true error; for them the table gives ms instead of passes.
 
@@ -57,7 +58,7 @@ from implicit_cloth.solvers.multigrid import grid_prolongations
 from implicit_cloth.solvers.pcg import Filter, filtered_pcg
 
 #: the library's own preconditioners, compiled (numba), timed on the live system of the captured solve
-LIBRARY = {"lib_multigrid": "multigrid", "lib_smoothed": "multigrid_smoothed"}
+LIBRARY = {"lib_multigrid": "multigrid", "lib_smoothed": "multigrid_smoothed", "lib_smoothed_K": "multigrid_smoothed+K"}
 
 LEVERS = {
     "jacobi": {}, "jacobi2": {"nu": 2}, "W": {"cycle": "W"},
@@ -77,7 +78,9 @@ def library_solves(model, A, b: np.ndarray, z: np.ndarray, filters: dict, tol: f
     mass = np.repeat(model.masses, 3)
     out = {}
     for name in library:
-        pc = make_preconditioner(LIBRARY[name], model, "numba")
+        pname, _, cycle = LIBRARY[name].partition("+")          # name+K: that multigrid with the K-cycle
+        pc = make_preconditioner(pname, model, "numba")
+        pc.cycle = cycle or "V"
         for key, filt in filters.items():
             best = np.inf
             for _ in range(repeats):
@@ -307,7 +310,7 @@ def solve_all(sysd: dict, levers: list[str], tol: float, label: str, key: str = 
 
 def markdown(res: dict) -> str:
     out = [f"Iterations / true error of dv / fine-level matrix passes of the whole solve, tolerance {res['tolerance']:g}; "
-           f"the library's own preconditioners (`lib_multigrid`, `lib_smoothed`: compiled, "
+           f"the library's own preconditioners (`lib_multigrid`, `lib_smoothed`, `lib_smoothed_K`: compiled, "
            f"{res.get('threads', 1)} thread(s)) give their set-up and solve's ms (best of 3) instead of passes.",
            ""]
     for label in dict.fromkeys(r["system"] for r in res["rows"]):
