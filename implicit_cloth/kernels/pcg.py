@@ -552,6 +552,48 @@ def _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, l
         _msymmv(d, i, j, u, u6, False, part, x, y)
 
 
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _level_down(l, b, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv, pnnz, tptr, tidx, tval, toff,
+                omegas, lpar, lpv, lpb, pbb, wb, wx, wr, blk):
+    """Level l's cycle before its coarse correction (:func:`vcycle`): pre-smooth from zero, the residual,
+    restricted into level l + 1's right-hand side."""
+    nc = voff[l + 2] - voff[l + 1]
+    bl = b if l == 0 else wb[3 * voff[l]:3 * voff[l + 1]]
+    x = wx[3 * voff[l]:3 * voff[l + 1]]
+    r = wr[3 * voff[l]:3 * voff[l + 1]]
+    d = dinv[voff[l]:voff[l + 1]]
+    tp = tptr[toff[l]:toff[l] + nc + 1]
+    ti = tidx[pnnz[l]:pnnz[l + 1]]
+    tv = tval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else tval[pnnz[l]:pnnz[l + 1]]
+    par = bool(lpar[l])
+    _presmooth(d, omegas[l], bl, x, par)
+    _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, r, lpar, lpv, lpb, pbb)
+    _sub(bl, r, par)
+    _transfer(tp, ti, tv, r, wb[3 * voff[l + 1]:3 * voff[l + 2]], False, bool(lpar[l + 1]))
+
+
+@njit(cache=True, fastmath={"contract"}, inline="always")
+def _level_up(l, b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv, pptr, pidx, pval, poff, pnnz,
+              omegas, lpar, lpv, lpb, pbb, wb, wx, wr, blk):
+    """Level l's cycle after its coarse correction (:func:`vcycle`; the correction in level l + 1's ``wr``, the
+    coarsest's in its ``wx``): prolongated and added, then post-smoothed into ``wr`` (the finest level into
+    ``out``)."""
+    L = len(voff) - 2
+    n = voff[l + 1] - voff[l]
+    bl = b if l == 0 else wb[3 * voff[l]:3 * voff[l + 1]]
+    x = wx[3 * voff[l]:3 * voff[l + 1]]
+    y = out if l == 0 else wr[3 * voff[l]:3 * voff[l + 1]]
+    xc = wx[3 * voff[L]:3 * voff[L + 1]] if l + 1 == L else wr[3 * voff[l + 1]:3 * voff[l + 2]]
+    d = dinv[voff[l]:voff[l + 1]]
+    pp = pptr[poff[l]:poff[l] + n + 1]
+    pi = pidx[pnnz[l]:pnnz[l + 1]]
+    pv = pval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else pval[pnnz[l]:pnnz[l + 1]]
+    par = bool(lpar[l])
+    _transfer(pp, pi, pv, xc, x, True, par)
+    _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, lpar, lpv, lpb, pbb)
+    _smooth(d, omegas[l], bl, x, y, par)
+
+
 @njit(cache=True, fastmath={"contract"})
 def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
            pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
@@ -582,34 +624,12 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
         return
     blk = len(pval) == 9 * len(pidx)                   # block transfers (the smoothed prolongation)
     for l in range(L):
-        nc = voff[l + 2] - voff[l + 1]
-        bl = b if l == 0 else wb[3 * voff[l]:3 * voff[l + 1]]
-        x = wx[3 * voff[l]:3 * voff[l + 1]]
-        r = wr[3 * voff[l]:3 * voff[l + 1]]
-        d = dinv[voff[l]:voff[l + 1]]
-        tp = tptr[toff[l]:toff[l] + nc + 1]
-        ti = tidx[pnnz[l]:pnnz[l + 1]]
-        tv = tval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else tval[pnnz[l]:pnnz[l + 1]]
-        par = bool(lpar[l])
-        _presmooth(d, omegas[l], bl, x, par)
-        _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, r, lpar, lpv, lpb, pbb)
-        _sub(bl, r, par)
-        _transfer(tp, ti, tv, r, wb[3 * voff[l + 1]:3 * voff[l + 2]], False, bool(lpar[l + 1]))
+        _level_down(l, b, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv, pnnz, tptr, tidx, tval, toff,
+                    omegas, lpar, lpv, lpb, pbb, wb, wx, wr, blk)
     _coarse_solve(C, upper, wb[3 * voff[L]:3 * voff[L + 1]], wx[3 * voff[L]:3 * voff[L + 1]])
     for l in range(L - 1, -1, -1):
-        n = voff[l + 1] - voff[l]
-        bl = b if l == 0 else wb[3 * voff[l]:3 * voff[l + 1]]
-        x = wx[3 * voff[l]:3 * voff[l + 1]]
-        y = out if l == 0 else wr[3 * voff[l]:3 * voff[l + 1]]
-        xc = wx[3 * voff[L]:3 * voff[L + 1]] if l + 1 == L else wr[3 * voff[l + 1]:3 * voff[l + 2]]
-        d = dinv[voff[l]:voff[l + 1]]
-        pp = pptr[poff[l]:poff[l] + n + 1]
-        pi = pidx[pnnz[l]:pnnz[l + 1]]
-        pv = pval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else pval[pnnz[l]:pnnz[l + 1]]
-        par = bool(lpar[l])
-        _transfer(pp, pi, pv, xc, x, True, par)
-        _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, lpar, lpv, lpb, pbb)
-        _smooth(d, omegas[l], bl, x, y, par)
+        _level_up(l, b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv, pptr, pidx, pval, poff,
+                  pnnz, omegas, lpar, lpv, lpb, pbb, wb, wx, wr, blk)
 
 
 @njit(cache=True, fastmath={"contract"})
@@ -647,19 +667,8 @@ def kcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
     down = True
     while True:
         if down:                                   # level l's cycle: pre-smooth, residual, restrict
-            nc = voff[l + 2] - voff[l + 1]
-            bl = b if l == 0 else wb[3 * voff[l]:3 * voff[l + 1]]
-            x = wx[3 * voff[l]:3 * voff[l + 1]]
-            r = wr[3 * voff[l]:3 * voff[l + 1]]
-            d = dinv[voff[l]:voff[l + 1]]
-            tp = tptr[toff[l]:toff[l] + nc + 1]
-            ti = tidx[pnnz[l]:pnnz[l + 1]]
-            tv = tval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else tval[pnnz[l]:pnnz[l + 1]]
-            par = bool(lpar[l])
-            _presmooth(d, omegas[l], bl, x, par)
-            _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, r, lpar, lpv, lpb, pbb)
-            _sub(bl, r, par)
-            _transfer(tp, ti, tv, r, wb[3 * voff[l + 1]:3 * voff[l + 2]], False, bool(lpar[l + 1]))
+            _level_down(l, b, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv, pnnz, tptr, tidx, tval,
+                        toff, omegas, lpar, lpv, lpb, pbb, wb, wx, wr, blk)
             if l + 1 == L:
                 _coarse_solve(C, upper, wb[3 * voff[L]:3 * voff[L + 1]], wx[3 * voff[L]:3 * voff[L + 1]])
                 down = False
@@ -668,19 +677,8 @@ def kcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
                 kstage[l] = 0
             continue
         # level l's cycle, after its coarse correction: prolongate it, post-smooth
-        n = voff[l + 1] - voff[l]
-        bl = b if l == 0 else wb[3 * voff[l]:3 * voff[l + 1]]
-        x = wx[3 * voff[l]:3 * voff[l + 1]]
-        y = out if l == 0 else wr[3 * voff[l]:3 * voff[l + 1]]
-        xc = wx[3 * voff[L]:3 * voff[L + 1]] if l + 1 == L else wr[3 * voff[l + 1]:3 * voff[l + 2]]
-        d = dinv[voff[l]:voff[l + 1]]
-        pp = pptr[poff[l]:poff[l] + n + 1]
-        pi = pidx[pnnz[l]:pnnz[l + 1]]
-        pv = pval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else pval[pnnz[l]:pnnz[l + 1]]
-        par = bool(lpar[l])
-        _transfer(pp, pi, pv, xc, x, True, par)
-        _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, lpar, lpv, lpb, pbb)
-        _smooth(d, omegas[l], bl, x, y, par)
+        _level_up(l, b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv, pptr, pidx, pval, poff,
+                  pnnz, omegas, lpar, lpv, lpb, pbb, wb, wx, wr, blk)
         if l == 0:
             return
         # level m = l's cycle done, its result c in wr: the K-step of level m goes on
