@@ -271,7 +271,8 @@ def _section_lines(r: RunReport) -> list[str]:
                     f"iterations a step" if s.mean_attempted_solves is not None
                     and s.mean_attempted_solves > s.mean_solves else "")
         lines.append(
-            f"solver       {s.preconditioner} PCG ({s.accelerator}), iterations mean {s.mean_iterations:.1f} / "
+            f"solver       {s.preconditioner} PCG ({s.accelerator}{', K-cycle' if s.cycle == 'K' else ''}), "
+            f"iterations mean {s.mean_iterations:.1f} / "
             f"max {s.max_iterations}, tolerance {s.tolerance:g} on the error of dv (max relative residual "
             f"{s.max_residual:.3g}{newton}), unconverged steps {s.unconverged_steps}{attempts}")
     a = r.adaptive

@@ -172,3 +172,14 @@ def test_scene_key_selects_the_kcycle_and_the_report_names_it():
         d["solver"] = bad
         with pytest.raises(SceneError, match=match):
             ic.Simulator(d, dt=H)
+
+
+def test_cli_names_the_kcycle(tmp_path, capsys):
+    from implicit_cloth.cli import main
+
+    scene = tmp_path / "k.toml"
+    scene.write_text('[simulation]\ndt = 0.02\nduration = 0.06\n[solver]\ncycle = "K"\n[cloth]\n'
+                     'resolution = [12, 12]\nmass = 0.1\npins = ["top_left", "top_right"]\n'
+                     '[effects]\ngravity = [0.0, 0.0, -9.81]\n')
+    assert main(["run", str(scene), "--out", str(tmp_path / "out")]) == 0
+    assert "PCG (" in (out := capsys.readouterr().out) and ", K-cycle)" in out
