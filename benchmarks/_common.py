@@ -35,6 +35,13 @@ def write_outputs(out: Path, name: str, result: dict, markdown: str) -> None:
     atomic_write(out / f"{name}.md", lambda f: f.write(markdown.encode("utf-8")))
 
 
+def series(name: str) -> tuple[str, str]:
+    """A benchmark's solver series as ``(solver.preconditioner, solver.cycle)``: a preconditioner's name, or a
+    multigrid's with ``+K`` for its K-cycle (``"multigrid_smoothed+K"``)."""
+    pc, _, cycle = name.partition("+")
+    return pc, cycle or "V"
+
+
 def hanging_stiff(n: int, k: float = 1e4, preconditioner: str = "multigrid", tolerance: float | None = None) -> dict:
     """The "hanging stiff cloth" of the performance issue: 1 m x 1 m, 0.1 kg, flat at rest, top corners pinned."""
     solver = {"preconditioner": preconditioner, "max_iterations": 20000}

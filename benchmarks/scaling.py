@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse.linalg as spla
-from _common import ROOT, hanging_stiff, ic, machine, spmv_seconds, write_outputs
+from _common import ROOT, hanging_stiff, ic, machine, series, spmv_seconds, write_outputs
 
 from implicit_cloth.backend import resolve as resolve_accelerator
 from implicit_cloth.backend import set_default_accelerator
@@ -66,10 +66,9 @@ SERIES = ["multigrid", "multigrid_smoothed", "block_jacobi", "multigrid+K", "mul
 def stiff(n: int, k: float, preconditioner: str = "multigrid", tolerance: float | None = None) -> dict:
     """The hanging stiff cloth with this benchmark's step control (fixed steps unless ``--adaptive``);
     ``preconditioner`` one of :data:`SERIES` (``name+K``: that multigrid with the K-cycle)."""
-    name, _, cycle = preconditioner.partition("+")
+    name, cycle = series(preconditioner)
     d = hanging_stiff(n, k, name, tolerance)
-    if cycle:
-        d["solver"]["cycle"] = cycle
+    d["solver"]["cycle"] = cycle
     if not ADAPTIVE:
         d["simulation"]["adaptive"] = {"enabled": False}
     return d

@@ -50,7 +50,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from _common import ROOT, hanging_stiff, ic, machine, write_outputs
+from _common import ROOT, hanging_stiff, ic, machine, series, write_outputs
 from vs_blender import scene as peer_scene
 
 from implicit_cloth.solvers.blocks import inv3
@@ -78,9 +78,9 @@ def library_solves(model, A, b: np.ndarray, z: np.ndarray, filters: dict, tol: f
     mass = np.repeat(model.masses, 3)
     out = {}
     for name in library:
-        pname, _, cycle = LIBRARY[name].partition("+")          # name+K: that multigrid with the K-cycle
+        pname, cycle = series(LIBRARY[name])
         pc = make_preconditioner(pname, model, "numba")
-        pc.cycle = cycle or "V"
+        pc.cycle = cycle
         for key, filt in filters.items():
             best = np.inf
             for _ in range(repeats):

@@ -659,8 +659,10 @@ def kcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
     cycle leaves its result in ``wr`` (the finest in ``out``), where the K-step combines its two.
     """
     L = len(voff) - 2
-    if L == 0:
-        _coarse_solve(C, upper, b, out)
+    if L <= 1:                                     # no level whose coarse correction takes a K-step
+        vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
+               pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
+               wb, wx, wr)
         return
     blk = len(pval) == 9 * len(pidx)
     l = 0
