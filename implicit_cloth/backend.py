@@ -58,7 +58,7 @@ def threads() -> int:
     :func:`implicit_cloth.solvers.multigrid.thread_min_vertices` vertices (4096 under GNU OpenMP's threading
     layer, which the kernels ask numba for first, :mod:`implicit_cloth.kernels.layer`; 16384 under the others):
     the products, smoothing sweeps, transfers, CG's updates and, from 16384 fine vertices, its dot products,
-    and the Galerkin refresh; the springs' assembly stays serial. The numbers are the same for every thread
+    and the Galerkin refresh; the springs' assembly from the same size. The numbers are the same for every thread
     count: the chunks, not the threads, decide what is summed where, so a run is reproducible bit for bit.
     One thread by default: on the shared 2-core test machine a second thread was slower whenever other work
     held the other core (see docs/benchmarks.md). BLAS threads are a separate setting

@@ -332,3 +332,69 @@ def test_block_product_gives_the_csr_products_numbers():
         y = sm @ x
         assert not sm._csr_current
         assert np.array_equal(y, sm.csr @ x)
+
+
+@pytest.mark.parametrize("kind", ["grid", "mesh"])
+@pytest.mark.parametrize("chunks", [1, 3, 8, 40])
+def test_threaded_spring_pass_gives_the_serial_pass_numbers_bit_for_bit(tmp_path, kind, chunks):
+    """The chunked pass (each chunk owns its vertices' rows and visits the springs touching them in order)
+    gives the serial pass's blocks, forces and ``(dF/dx) w`` to the last bit, whatever the chunks: on a grid
+    and on a shuffled mesh (chunks' springs far apart), with a spring given twice (two springs on one pair)."""
+    from implicit_cloth.kernels.springs import chunk_springs, springs_linearize, springs_linearize_chunks
+
+    scene = _grid_scene(True) if kind == "grid" else _mesh_scene(tmp_path, True)
+    set_default_accelerator("numba")
+    m = ic.Simulator(scene).model
+    s = m.springs
+    si, sj, k, kd, L0 = s._sorted
+    # a doubled spring: the same pair twice in the sorted order, each with its own constants
+    si, sj = np.insert(si, 5, si[5]), np.insert(sj, 5, sj[5])
+    k, kd, L0 = np.insert(k, 5, 0.5 * k[5]), np.insert(kd, 5, 2 * kd[5]), np.insert(L0, 5, 0.8 * L0[5])
+    bidx = np.insert(s._bidx, 5, s._bidx[5], axis=0)
+    rng = np.random.default_rng(11)
+    v, w = rng.standard_normal((2, m.n, 3))
+    blocks0 = rng.standard_normal(m.system.blocks.shape)       # whatever the other effects put there
+    f0, kw0 = rng.standard_normal((2, m.n, 3))
+    vlo, cptr, clist = chunk_springs(m.n, si, sj, chunks)
+    assert len(vlo) == chunks + 1 and cptr[-1] == len(clist)
+    for name, x in _states(m, rng).items():
+        for with_w in (True, False):
+            out = []
+            for chunked in (False, True):
+                B, f, kw = blocks0.copy(), f0.copy(), kw0.copy()
+                args = (x, v, w, with_w, True, si, sj, k, kd, L0, float(s._tiny), 1.3e-3, 3.7e-2, bidx)
+                if chunked:
+                    springs_linearize_chunks(*args, vlo, cptr, clist, B, kw, f)
+                else:
+                    springs_linearize(*args, B, kw, f)
+                out.append((B, f, kw))
+            for what, a, b in zip(("blocks", "f", "kw"), *out):
+                assert np.array_equal(a, b), f"{kind} {name} {what} with_w={with_w}"
+            assert not np.array_equal(out[0][0], blocks0)
+
+
+def test_threaded_spring_pass_runs_from_the_threaded_size(monkeypatch):
+    """With two threads and a cloth of the multigrid's threaded size the springs take the chunked pass (its
+    chunks made once), with one thread or a smaller cloth the serial one; the blocks the same."""
+    from implicit_cloth import backend
+    from implicit_cloth.kernels import springs as kernels
+    from implicit_cloth.solvers import multigrid
+
+    set_default_accelerator("numba")
+    m = ic.Simulator(_grid_scene(True)).model
+    calls = []
+    real = kernels.springs_linearize_chunks
+    monkeypatch.setattr(kernels, "springs_linearize_chunks", lambda *a: calls.append(1) or real(*a))
+    x = m.rest_positions * 1.1
+    v = np.ones_like(x)
+    res = []
+    for n_threads, tmin in ((1, 0), (2, 10 ** 6), (2, 0), (2, 0)):
+        monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES", tmin)
+        monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES_OTHER_LAYERS", tmin)
+        with backend.using_threads(n_threads):
+            m.linearize(x, v, 0.0, 1e-3, 1e-2)
+        res.append(m.system.blocks.copy())
+    assert len(calls) == 2
+    assert m.springs._chunks is not None
+    for b in res[1:]:
+        assert np.array_equal(b, res[0])

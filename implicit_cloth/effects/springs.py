@@ -160,6 +160,8 @@ class Springs:
             self._bidx = c(np.stack([system.block_index(i, i), system.block_index(j, j),
                                      system.block_index(i, j), system.block_index(j, i)], axis=1), dtype=np.int64)
             self._damped = bool(np.any(self.kd))
+            #: the threaded pass's chunks (:meth:`_threaded_chunks`), made on its first use
+            self._chunks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
             #: the springs in their own order for the compiled force pass (:meth:`force`), and its scratch
             self._plain = (c(self.i), c(self.j), c(self.k, dtype=float), c(self.kd, dtype=float),
                            c(self.L0, dtype=float))
@@ -176,6 +178,26 @@ class Springs:
             np.maximum(a, 0.0, out=a)
         return a
 
+    def _threaded_chunks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The chunks of the threaded pass (:func:`implicit_cloth.kernels.springs.springs_linearize_chunks`)
+        when it runs: more than one thread (:func:`implicit_cloth.backend.threads`) on a cloth of at least the
+        multigrid's threaded size (:func:`implicit_cloth.solvers.multigrid.thread_min_vertices`); else None
+        (the serial pass: the same numbers)."""
+        from ..backend import threads
+
+        if threads() <= 1:
+            return None
+        from ..solvers import multigrid
+
+        if self.n < multigrid.thread_min_vertices():
+            return None
+        if self._chunks is None:
+            from ..kernels.springs import chunk_springs
+
+            self._chunks = chunk_springs(self.n, self._sorted[0], self._sorted[1], multigrid.THREAD_CHUNKS)
+        multigrid.set_numba_threads()
+        return self._chunks
+
     def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
         """Add ``-(c_v dF/dv + c_x dF/dx)`` to the system blocks, ``(dF/dx) w`` to ``kw`` and F to ``f``.
 
@@ -184,7 +206,8 @@ class Springs:
         (i,i) and (j,j) blocks with + and the (i,j), (j,i) blocks with - (one
         sparse product giving contiguous (n_blocks, 9) values, added in one pass).
         On the numba path all of it is one compiled pass over the springs
-        (:func:`implicit_cloth.kernels.springs.springs_linearize`).
+        (:func:`implicit_cloth.kernels.springs.springs_linearize`), on threads where the solver's passes are
+        (the same numbers).
         """
         if self.backend.compiled:
             from ..kernels.springs import springs_linearize
@@ -193,8 +216,15 @@ class Springs:
             c = np.ascontiguousarray   # the kernel is compiled for C-contiguous float64 arrays (no copy if so)
             x, v = c(x, dtype=float), c(v, dtype=float)
             w = c(w, dtype=float) if with_w else x
-            springs_linearize(x, v, w, with_w, self._damped, *self._sorted, float(self._tiny), float(c_x),
-                              float(c_v), self._bidx, system.blocks, kw if with_w else f, f)
+            args = (x, v, w, with_w, self._damped, *self._sorted, float(self._tiny), float(c_x), float(c_v),
+                    self._bidx)
+            chunks = self._threaded_chunks()
+            if chunks is None:
+                springs_linearize(*args, system.blocks, kw if with_w else f, f)
+            else:
+                from ..kernels.springs import springs_linearize_chunks
+
+                springs_linearize_chunks(*args, *chunks, system.blocks, kw if with_w else f, f)
             return
         d, l, u, ok, inv = self._frame(x)
         a = self._transverse(ok, inv)

@@ -21,8 +21,9 @@ path, fused per spring ``s = (i, j)`` (notation of Baraff & Witkin 1998, §4):
   last bit, which is the only difference besides the order of the sums (the
   springs are visited sorted by vertex, for cache locality).
 
-Single-threaded (a scatter with two threads would race on shared vertices, and
-the test machine has two shared cores). Compiled with ``cache=True``: the
+On threads (:func:`springs_linearize_chunks`, from the multigrid's threaded size up) each chunk of vertices
+owns its rows and visits the springs that touch it in the serial order: the same numbers to the last bit
+(a plain scatter on two threads would race on shared vertices). Compiled with ``cache=True``: the
 compilation is paid once per installation. Importing this module imports numba.
 """
 
@@ -30,7 +31,8 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+import numpy as np
+from numba import njit, prange
 
 
 @njit(cache=True, inline="always")
@@ -55,6 +57,79 @@ def _add_sym(B, b, sign, c00, c01, c02, c11, c12, c22):
     B[p + 6] += sign * c02
     B[p + 7] += sign * c12
     B[p + 8] += sign * c22
+
+
+@njit(cache=True, inline="always")
+def _spring_terms(x, v, w, with_w, damped, i, j, ks, kds, L, tiny, c_x, c_v):
+    """One spring's numbers: its force on ``i`` ``(f0, f1, f2)``, ``(dF/dx) w`` on ``i`` ``(q0, q1, q2)`` (0 without
+    ``with_w``) and the upper triangle of its system block ``C`` ``(c00, c01, c02, c11, c12, c22)``."""
+    d0, d1, d2, l = spring_vector(x, i, j)
+    if l > tiny:
+        inv = 1.0 / l
+        a = 1.0 - L * inv
+    else:
+        inv = 0.0
+        a = 0.0 if L > 0.0 else 1.0
+    if a < 0.0:
+        a = 0.0
+    u0 = d0 * inv
+    u1 = d1 * inv
+    u2 = d2 * inv
+    # force on i: k (d - L0 u) + kd ((v_j - v_i) . u) u
+    f0 = ks * (d0 - L * u0)
+    f1 = ks * (d1 - L * u1)
+    f2 = ks * (d2 - L * u2)
+    if damped:
+        g = kds * ((v[j, 0] - v[i, 0]) * u0 + (v[j, 1] - v[i, 1]) * u1 + (v[j, 2] - v[i, 2]) * u2)
+        f0 += g * u0
+        f1 += g * u1
+        f2 += g * u2
+    # (dF/dx) w
+    q0 = 0.0
+    q1 = 0.0
+    q2 = 0.0
+    if with_w:
+        w0 = w[j, 0] - w[i, 0]
+        w1 = w[j, 1] - w[i, 1]
+        w2 = w[j, 2] - w[i, 2]
+        ka = ks * a
+        kb = ks * (1.0 - a) * (u0 * w0 + u1 * w1 + u2 * w2)
+        q0 = ka * w0 + kb * u0
+        q1 = ka * w1 + kb * u1
+        q2 = ka * w2 + kb * u2
+    # C = alpha I + beta u u^T (exactly symmetric)
+    alpha = c_x * ks * a
+    beta = c_x * ks * (1.0 - a) + c_v * kds
+    b0 = beta * u0
+    b1 = beta * u1
+    return (f0, f1, f2, q0, q1, q2,
+            b0 * u0 + alpha, b0 * u1, b0 * u2, b1 * u1 + alpha, b1 * u2, beta * u2 * u2 + alpha)
+
+
+@njit(cache=True, inline="always")
+def _add_end(B, f, kw, with_w, r, sign, diag, off, t):
+    """Spring terms ``t`` (:func:`_spring_terms`) at its end ``r``: ``sign`` (+1 at i, -1 at j) times the force
+    and ``(dF/dx) w`` into ``f[r]``, ``kw[r]``, ``C`` into the diagonal block ``diag``, ``-C`` into the block
+    ``off`` of row ``r`` (the other end's column)."""
+    f0, f1, f2, q0, q1, q2, c00, c01, c02, c11, c12, c22 = t
+    if sign > 0.0:
+        f[r, 0] += f0
+        f[r, 1] += f1
+        f[r, 2] += f2
+        if with_w:
+            kw[r, 0] += q0
+            kw[r, 1] += q1
+            kw[r, 2] += q2
+    else:
+        f[r, 0] -= f0
+        f[r, 1] -= f1
+        f[r, 2] -= f2
+        if with_w:
+            kw[r, 0] -= q0
+            kw[r, 1] -= q1
+            kw[r, 2] -= q2
+    _add_sym(B, diag, 1.0, c00, c01, c02, c11, c12, c22)
+    _add_sym(B, off, -1.0, c00, c01, c02, c11, c12, c22)
 
 
 @njit(cache=True)
@@ -148,6 +223,48 @@ def springs_linearize(x, v, w, with_w, damped, si, sj, k, kd, L0, tiny, c_x, c_v
         _add_sym(B, bidx[s, 1], 1.0, c00, c01, c02, c11, c12, c22)
         _add_sym(B, bidx[s, 2], -1.0, c00, c01, c02, c11, c12, c22)
         _add_sym(B, bidx[s, 3], -1.0, c00, c01, c02, c11, c12, c22)
+
+
+@njit(cache=True, parallel=True)
+def springs_linearize_chunks(x, v, w, with_w, damped, si, sj, k, kd, L0, tiny, c_x, c_v, bidx, vlo, cptr, clist,
+                             blocks, kw, f):
+    """:func:`springs_linearize` on threads, with its numbers to the last bit.
+
+    Chunk ``c`` owns the vertices ``vlo[c] <= r < vlo[c + 1]``: their rows of ``f``, ``kw`` and of the blocks
+    (the diagonal block and the blocks ``(r, other end)``). It visits the springs with an end it owns
+    (``clist[cptr[c]:cptr[c + 1]]``, ascending) and adds each spring's terms at those ends only, so every
+    number is written by one chunk and receives its springs' terms in the serial pass's order (a spring
+    joining two chunks is computed by both). No chunk writes where another does: no race, and the same sums
+    whatever the number of threads or chunks.
+    """
+    B = blocks.reshape(-1)
+    for c in prange(len(cptr) - 1):
+        lo = vlo[c]
+        hi = vlo[c + 1]
+        for p in range(cptr[c], cptr[c + 1]):
+            s = clist[p]
+            i = si[s]
+            j = sj[s]
+            t = _spring_terms(x, v, w, with_w, damped, i, j, k[s], kd[s], L0[s], tiny, c_x, c_v)
+            if lo <= i < hi:
+                _add_end(B, f, kw, with_w, i, 1.0, bidx[s, 0], bidx[s, 2], t)
+            if lo <= j < hi:
+                _add_end(B, f, kw, with_w, j, -1.0, bidx[s, 1], bidx[s, 3], t)
+
+
+def chunk_springs(n: int, si: np.ndarray, sj: np.ndarray, chunks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The chunks of :func:`springs_linearize_chunks`: ``chunks`` equal vertex ranges (bounds ``vlo``) and each
+    one's springs with an end in it, ascending (``cptr``, ``clist``)."""
+    vlo = np.linspace(0, n, chunks + 1).round().astype(np.int64)
+    ci = np.searchsorted(vlo, si, side="right") - 1
+    cj = np.searchsorted(vlo, sj, side="right") - 1
+    s = np.arange(len(si), dtype=np.int64)
+    owner = np.concatenate([ci, cj[cj != ci]])
+    order = np.concatenate([s, s[cj != ci]])
+    o = np.lexsort((order, owner))
+    cptr = np.zeros(chunks + 1, dtype=np.int64)
+    np.cumsum(np.bincount(owner, minlength=chunks), out=cptr[1:])
+    return vlo, cptr, np.ascontiguousarray(order[o])
 
 
 @njit(cache=True)

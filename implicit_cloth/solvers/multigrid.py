@@ -853,7 +853,7 @@ class PackedHierarchy(NamedTuple):
     pbb: np.ndarray       #: each chunk's incoming column blocks (local to the level), ascending
 
 
-def _set_numba_threads() -> None:
+def set_numba_threads() -> None:
     """Let numba's parallel regions use :func:`implicit_cloth.backend.threads` threads (at most its pool)."""
     from numba import config, set_num_threads
 
@@ -996,7 +996,7 @@ class _FusedHierarchy:
         tmin = thread_min_vertices() if threads() > 1 else None
         par = tmin is not None and fine.n >= tmin       # the copies on threads: the same numbers
         if par or mg.smoothed:
-            _set_numba_threads()
+            set_numba_threads()
         gather = _fused.pgather_blocks if par else _fused.gather_blocks
         gather(flat, fine.diag_index, self.adg.reshape(-1))
         gather(flat, self._uidx[0], self.auv.reshape(-1))
@@ -1122,7 +1122,7 @@ class _FusedHierarchy:
         C, upper = self._coarse()
         threaded = threads() > 1
         if threaded:
-            _set_numba_threads()
+            set_numba_threads()
         return PackedHierarchy(self.dg, self.uI, self.uJ, self.uv, self.vu6, self.use6, self.voff, self.uoff,
                                self.clist, self.Sc, self.ws, self.dinv, self.pptr, self.pidx, self.pval, self.poff,
                                self.pnnz, self.tptr, self.tidx, self.tval, self.toff, C, upper, self.mg.level_omega,
