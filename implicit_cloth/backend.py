@@ -128,6 +128,10 @@ class Backend:
     #: whether the compiled kernels run (the springs and the multigrid PCG choose their path from it)
     compiled = False
 
+    def threaded(self, n: int) -> bool:
+        """Whether passes over a cloth of ``n`` vertices run on threads (never on numpy's path)."""
+        return False
+
     def __repr__(self) -> str:
         return f"Backend({self.name!r})"
 
@@ -204,10 +208,24 @@ class NumbaBackend(Backend):
     def __init__(self) -> None:
         from .kernels import assembly as _kernels  # noqa: F401  (imports numba; kernels compile or load from cache on use)
 
-    def reset_diagonal(self, blocks: np.ndarray, diag_index: np.ndarray, d: np.ndarray) -> None:
-        from .kernels.assembly import reset_diagonal
+    def threaded(self, n: int) -> bool:
+        """Whether the compiled passes over a cloth of ``n`` vertices run on threads: more than one allowed
+        (:func:`threads`) and ``n`` at least the multigrid's threaded level size
+        (:func:`implicit_cloth.solvers.multigrid.thread_min_vertices`); numba's thread count set if so. The
+        threaded passes give the serial ones' numbers."""
+        if threads() <= 1:
+            return False
+        from .solvers import multigrid
 
-        reset_diagonal(blocks, diag_index, d)
+        if n < multigrid.thread_min_vertices():
+            return False
+        multigrid.set_numba_threads()
+        return True
+
+    def reset_diagonal(self, blocks: np.ndarray, diag_index: np.ndarray, d: np.ndarray) -> None:
+        from .kernels.assembly import preset_diagonal, reset_diagonal
+
+        (preset_diagonal if self.threaded(len(diag_index)) else reset_diagonal)(blocks, diag_index, d)
 
     def add_diagonal(self, blocks: np.ndarray, diag_index: np.ndarray, d: np.ndarray) -> None:
         from .kernels.assembly import add_diagonal
@@ -215,16 +233,16 @@ class NumbaBackend(Backend):
         add_diagonal(blocks, diag_index, d)
 
     def blocks_to_csr(self, blocks: np.ndarray, bptr: np.ndarray, perm: np.ndarray, data: np.ndarray) -> None:
-        from .kernels.assembly import blocks_to_csr
+        from .kernels.assembly import blocks_to_csr, pblocks_to_csr
 
-        blocks_to_csr(bptr, blocks, data)
+        (pblocks_to_csr if self.threaded(len(bptr) - 1) else blocks_to_csr)(bptr, blocks, data)
 
     def block_matvec(self, blocks: np.ndarray, bptr: np.ndarray, bcols: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``A x`` from the blocks themselves (the CSR product's numbers, without the CSR copy)."""
-        from .kernels.assembly import block_matvec
+        from .kernels.assembly import block_matvec, pblock_matvec
 
         y = np.empty(len(x))
-        block_matvec(bptr, bcols, blocks, x, y)
+        (pblock_matvec if self.threaded(len(bptr) - 1) else block_matvec)(bptr, bcols, blocks, x, y)
         return y
 
     def spring_lengths(self, x: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:

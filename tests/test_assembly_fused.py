@@ -375,7 +375,8 @@ def test_threaded_spring_pass_gives_the_serial_pass_numbers_bit_for_bit(tmp_path
 
 def test_threaded_spring_pass_runs_from_the_threaded_size(monkeypatch):
     """With two threads and a cloth of the multigrid's threaded size the springs take the chunked pass (its
-    chunks made once), with one thread or a smaller cloth the serial one; the blocks the same."""
+    chunks made once), with one thread or a smaller cloth the serial one; the blocks the same, and the forces
+    of the threaded force pass."""
     from implicit_cloth import backend
     from implicit_cloth.kernels import springs as kernels
     from implicit_cloth.solvers import multigrid
@@ -398,3 +399,52 @@ def test_threaded_spring_pass_runs_from_the_threaded_size(monkeypatch):
     assert m.springs._chunks is not None
     for b in res[1:]:
         assert np.array_equal(b, res[0])
+    forces = []                                  # the force pass's threaded twin: the same numbers
+    for n_threads in (1, 2):
+        with backend.using_threads(n_threads):
+            assert m.springs.backend.threaded(m.n) is (n_threads > 1)
+            out = np.zeros_like(x)
+            m.springs.force(x, v + np.arange(m.n)[:, None], 0.0, out)
+        forces.append(out)
+    assert np.array_equal(forces[0], forces[1]) and np.any(forces[0])
+
+
+@pytest.mark.parametrize("n_threads", [1, 2])
+def test_threaded_assembly_passes_give_the_serial_numbers(monkeypatch, n_threads):
+    """The back-end's threaded twins (reset, CSR copy, block product) run where :meth:`Backend.threaded` says,
+    and give the serial passes' numbers to the last bit."""
+    from implicit_cloth import backend
+    from implicit_cloth.kernels import assembly as kernels
+    from implicit_cloth.solvers import multigrid
+
+    monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES", 0)
+    monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES_OTHER_LAYERS", 0)
+    rng = np.random.default_rng(4)
+    g = cloth.grid((1.0, 1.0), (9, 8), plane="xy", kinds=KINDS)
+    pairs = np.concatenate([g.springs[k] for k in KINDS])
+    sm = SystemMatrix(g.n_vertices, pairs, accelerator="numba")
+    b = sm.backend
+    assert not backend.get_backend("numpy").threaded(10 ** 9)
+    vals = rng.standard_normal(sm.blocks.shape)
+    d = rng.uniform(1, 2, g.n_vertices)
+    x = rng.standard_normal(3 * g.n_vertices)
+    calls = []
+    for name in ("preset_diagonal", "pblocks_to_csr", "pblock_matvec"):
+        real = getattr(kernels, name)
+        monkeypatch.setattr(kernels, name, lambda *a, _r=real, _n=name: calls.append(_n) or _r(*a))
+    with backend.using_threads(n_threads):
+        assert b.threaded(g.n_vertices) is (n_threads > 1)
+        sm.blocks[:] = vals
+        sm.reset_diagonal(d)
+        expect = np.zeros_like(vals)
+        expect[sm.diag_index] = d[:, None, None] * np.eye(3)
+        assert np.array_equal(sm.blocks, expect)
+        sm.blocks[:] = vals
+        A = sm.finalize()
+        y = b.block_matvec(sm.blocks, sm.bptr, sm.block_cols, x)
+    assert len(calls) == (3 if n_threads > 1 else 0)
+    dense = np.zeros((3 * g.n_vertices,) * 2)
+    for k, (i, j) in enumerate(zip(sm.block_rows, sm.block_cols)):
+        dense[3 * i:3 * i + 3, 3 * j:3 * j + 3] = vals[k]
+    assert np.array_equal(A.toarray(), dense)
+    assert np.array_equal(y, A @ x)      # scipy's CSR product: the same additions in the same order

@@ -121,12 +121,13 @@ class Springs:
         if self.backend.compiled and out.dtype == np.float64 and out.flags.c_contiguous:
             # one compiled pass with numpy's arithmetic: the same numbers (the line searches and energy checks
             # evaluate forces many times a step)
-            from ..kernels.springs import spring_forces
+            from ..kernels.springs import pspring_forces, spring_forces
 
             c = np.ascontiguousarray
             B = self._B
-            spring_forces(c(x, dtype=float), c(v, dtype=float), *self._plain, float(self._tiny), self._damped,
-                          B.indptr, B.indices, B.data, self._F, out)
+            (pspring_forces if self.backend.threaded(self.n) else spring_forces)(
+                c(x, dtype=float), c(v, dtype=float), *self._plain, float(self._tiny), self._damped,
+                B.indptr, B.indices, B.data, self._F, out)
             return
         out += self._B @ self.spring_forces(x, v)
 
@@ -180,22 +181,15 @@ class Springs:
 
     def _threaded_chunks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The chunks of the threaded pass (:func:`implicit_cloth.kernels.springs.springs_linearize_chunks`)
-        when it runs: more than one thread (:func:`implicit_cloth.backend.threads`) on a cloth of at least the
-        multigrid's threaded size (:func:`implicit_cloth.solvers.multigrid.thread_min_vertices`); else None
-        (the serial pass: the same numbers)."""
-        from ..backend import threads
-
-        if threads() <= 1:
-            return None
-        from ..solvers import multigrid
-
-        if self.n < multigrid.thread_min_vertices():
+        when the back-end runs this cloth's passes on threads (:meth:`Backend.threaded
+        <implicit_cloth.backend.Backend.threaded>`); else None (the serial pass: the same numbers)."""
+        if not self.backend.threaded(self.n):
             return None
         if self._chunks is None:
             from ..kernels.springs import chunk_springs
+            from ..solvers.multigrid import THREAD_CHUNKS
 
-            self._chunks = chunk_springs(self.n, self._sorted[0], self._sorted[1], multigrid.THREAD_CHUNKS)
-        multigrid.set_numba_threads()
+            self._chunks = chunk_springs(self.n, self._sorted[0], self._sorted[1], THREAD_CHUNKS)
         return self._chunks
 
     def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:

@@ -281,6 +281,51 @@ def _dot3(a0, a1, a2, b0, b1, b2):
     return (a0 * b0 + a2 * b2) + a1 * b1
 
 
+@njit(cache=True, inline="always")
+def _spring_force(x, v, si, sj, k, kd, L0, tiny, damped, s, F):
+    """``F[s]``: spring ``s``'s force on its first vertex, with numpy's arithmetic (:func:`spring_forces`)."""
+    i = si[s]
+    j = sj[s]
+    d0 = x[j, 0] - x[i, 0]
+    d1 = x[j, 1] - x[i, 1]
+    d2 = x[j, 2] - x[i, 2]
+    l = math.sqrt(_dot3(d0, d1, d2, d0, d1, d2))
+    inv = 1.0 / l if l > tiny else 0.0
+    u0 = d0 * inv
+    u1 = d1 * inv
+    u2 = d2 * inv
+    ks = k[s]
+    L = L0[s]
+    f0 = ks * (d0 - L * u0)
+    f1 = ks * (d1 - L * u1)
+    f2 = ks * (d2 - L * u2)
+    if damped:
+        g = kd[s] * _dot3(v[j, 0] - v[i, 0], v[j, 1] - v[i, 1], v[j, 2] - v[i, 2], u0, u1, u2)
+        f0 += g * u0
+        f1 += g * u1
+        f2 += g * u2
+    F[s, 0] = f0
+    F[s, 1] = f1
+    F[s, 2] = f2
+
+
+@njit(cache=True, inline="always")
+def _incidence_row(r, bptr, bcol, bval, F, out):
+    """``out[r] += (B F)[r]``, summed in the row's stored order as scipy's product sums."""
+    y0 = 0.0
+    y1 = 0.0
+    y2 = 0.0
+    for p in range(bptr[r], bptr[r + 1]):
+        c = bcol[p]
+        a = bval[p]
+        y0 += a * F[c, 0]
+        y1 += a * F[c, 1]
+        y2 += a * F[c, 2]
+    out[r, 0] += y0
+    out[r, 1] += y1
+    out[r, 2] += y2
+
+
 @njit(cache=True)
 def spring_forces(x, v, si, sj, k, kd, L0, tiny, damped, bptr, bcol, bval, F, out):
     """``out += B F``: the springs' forces on the vertices, with numpy's arithmetic to the last bit.
@@ -294,39 +339,16 @@ def spring_forces(x, v, si, sj, k, kd, L0, tiny, damped, bptr, bcol, bval, F, ou
     ``out``.
     """
     for s in range(si.shape[0]):
-        i = si[s]
-        j = sj[s]
-        d0 = x[j, 0] - x[i, 0]
-        d1 = x[j, 1] - x[i, 1]
-        d2 = x[j, 2] - x[i, 2]
-        l = math.sqrt(_dot3(d0, d1, d2, d0, d1, d2))
-        inv = 1.0 / l if l > tiny else 0.0
-        u0 = d0 * inv
-        u1 = d1 * inv
-        u2 = d2 * inv
-        ks = k[s]
-        L = L0[s]
-        f0 = ks * (d0 - L * u0)
-        f1 = ks * (d1 - L * u1)
-        f2 = ks * (d2 - L * u2)
-        if damped:
-            g = kd[s] * _dot3(v[j, 0] - v[i, 0], v[j, 1] - v[i, 1], v[j, 2] - v[i, 2], u0, u1, u2)
-            f0 += g * u0
-            f1 += g * u1
-            f2 += g * u2
-        F[s, 0] = f0
-        F[s, 1] = f1
-        F[s, 2] = f2
+        _spring_force(x, v, si, sj, k, kd, L0, tiny, damped, s, F)
     for r in range(bptr.shape[0] - 1):
-        y0 = 0.0
-        y1 = 0.0
-        y2 = 0.0
-        for p in range(bptr[r], bptr[r + 1]):
-            c = bcol[p]
-            a = bval[p]
-            y0 += a * F[c, 0]
-            y1 += a * F[c, 1]
-            y2 += a * F[c, 2]
-        out[r, 0] += y0
-        out[r, 1] += y1
-        out[r, 2] += y2
+        _incidence_row(r, bptr, bcol, bval, F, out)
+
+
+@njit(cache=True, parallel=True)
+def pspring_forces(x, v, si, sj, k, kd, L0, tiny, damped, bptr, bcol, bval, F, out):
+    """:func:`spring_forces` on threads: each spring's force, then each vertex's row, written by one thread
+    each (the same numbers)."""
+    for s in prange(si.shape[0]):
+        _spring_force(x, v, si, sj, k, kd, L0, tiny, damped, s, F)
+    for r in prange(bptr.shape[0] - 1):
+        _incidence_row(r, bptr, bcol, bval, F, out)
