@@ -55,7 +55,7 @@ def threads() -> int:
     """Threads the compiled solver may use: :func:`set_threads`, else ``$IMPLICIT_CLOTH_THREADS``, else 1.
 
     Only the numba back-end uses more than one, and only on multigrid levels of at least
-    :func:`implicit_cloth.solvers.multigrid.thread_min_vertices` vertices (4096 under GNU OpenMP's threading
+    :func:`thread_min_vertices` vertices (4096 under GNU OpenMP's threading
     layer, which the kernels ask numba for first, :mod:`implicit_cloth.kernels.layer`; 16384 under the others):
     the products, smoothing sweeps, transfers, CG's updates and, from 16384 fine vertices, its dot products,
     and the Galerkin refresh; the springs' assembly from the same size. The numbers are the same for every thread
@@ -96,6 +96,42 @@ def using_threads(n: int | None) -> Iterator[None]:
         yield
     finally:
         _threads = before
+
+
+#: Levels with at least this many vertices run their passes on threads when more than one is allowed
+#: (:func:`threads`) and numba's threading layer is GNU OpenMP's (see
+#: :mod:`implicit_cloth.kernels.layer`); below it a parallel region costs more than it saves. Measured
+#: (2026-12-06, the hanging peer scene one step a frame, 2 threads against 1): with OpenMP's threads spinning
+#: between regions, from 1024 vertices 1.30 / 1.58 / 1.59x at 64² / 128² / 256² (CG's sums still serial;
+#: from 16384, 1.0 / 1.3x at 64² / 128²); with them sleeping, as the library sets them, each region pays a
+#: wake-up and from 1024 vertices the 32² cloth took 3.4-3.9 ms a step on two threads against 2.4-3.0 on one,
+#: the 256² cloth 212-234 against 184-216 from 4096.
+THREAD_MIN_VERTICES = 4096
+#: The same threshold under TBB's layer or numba's work queue, where a second thread joins a short region late
+#: (from 1024 vertices two threads took 2.1x / 1.6x one's time at 64², 0.87x / 1.1x at 128²).
+THREAD_MIN_VERTICES_OTHER_LAYERS = 16384
+
+
+def thread_min_vertices() -> int:
+    """The smallest level run on threads, for the threading layer this process runs (launched if need be)."""
+    from .kernels import layer
+
+    if layer.launch() == "omp":
+        return THREAD_MIN_VERTICES
+    return max(THREAD_MIN_VERTICES, THREAD_MIN_VERTICES_OTHER_LAYERS)
+
+
+#: Chunks every threaded pass is cut into (fixed: the chunks, not the threads, decide what is summed where,
+#: so every thread count gives the same numbers).
+THREAD_CHUNKS = 8
+
+
+def set_numba_threads() -> None:
+    """Let numba's parallel regions use :func:`implicit_cloth.backend.threads` threads (at most its pool)."""
+    from numba import config, set_num_threads
+
+    pool = int(config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
+    set_num_threads(max(1, min(threads(), pool)))
 
 
 def resolve(name: str | None = None) -> str:
@@ -211,15 +247,11 @@ class NumbaBackend(Backend):
     def threaded(self, n: int) -> bool:
         """Whether the compiled passes over a cloth of ``n`` vertices run on threads: more than one allowed
         (:func:`threads`) and ``n`` at least the multigrid's threaded level size
-        (:func:`implicit_cloth.solvers.multigrid.thread_min_vertices`); numba's thread count set if so. The
+        (:func:`thread_min_vertices`); numba's thread count set if so. The
         threaded passes give the serial ones' numbers."""
-        if threads() <= 1:
+        if threads() <= 1 or n < thread_min_vertices():
             return False
-        from .solvers import multigrid
-
-        if n < multigrid.thread_min_vertices():
-            return False
-        multigrid.set_numba_threads()
+        set_numba_threads()
         return True
 
     def reset_diagonal(self, blocks: np.ndarray, diag_index: np.ndarray, d: np.ndarray) -> None:

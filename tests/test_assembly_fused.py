@@ -379,7 +379,6 @@ def test_threaded_spring_pass_runs_from_the_threaded_size(monkeypatch):
     of the threaded force pass."""
     from implicit_cloth import backend
     from implicit_cloth.kernels import springs as kernels
-    from implicit_cloth.solvers import multigrid
 
     set_default_accelerator("numba")
     m = ic.Simulator(_grid_scene(True)).model
@@ -390,8 +389,8 @@ def test_threaded_spring_pass_runs_from_the_threaded_size(monkeypatch):
     v = np.ones_like(x)
     res = []
     for n_threads, tmin in ((1, 0), (2, 10 ** 6), (2, 0), (2, 0)):
-        monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES", tmin)
-        monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES_OTHER_LAYERS", tmin)
+        monkeypatch.setattr("implicit_cloth.backend.THREAD_MIN_VERTICES", tmin)
+        monkeypatch.setattr("implicit_cloth.backend.THREAD_MIN_VERTICES_OTHER_LAYERS", tmin)
         with backend.using_threads(n_threads):
             m.linearize(x, v, 0.0, 1e-3, 1e-2)
         res.append(m.system.blocks.copy())
@@ -415,10 +414,9 @@ def test_threaded_assembly_passes_give_the_serial_numbers(monkeypatch, n_threads
     and give the serial passes' numbers to the last bit."""
     from implicit_cloth import backend
     from implicit_cloth.kernels import assembly as kernels
-    from implicit_cloth.solvers import multigrid
 
-    monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES", 0)
-    monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES_OTHER_LAYERS", 0)
+    monkeypatch.setattr("implicit_cloth.backend.THREAD_MIN_VERTICES", 0)
+    monkeypatch.setattr("implicit_cloth.backend.THREAD_MIN_VERTICES_OTHER_LAYERS", 0)
     rng = np.random.default_rng(4)
     g = cloth.grid((1.0, 1.0), (9, 8), plane="xy", kinds=KINDS)
     pairs = np.concatenate([g.springs[k] for k in KINDS])

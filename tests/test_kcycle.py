@@ -106,8 +106,8 @@ def test_kcycle_one_and_two_threads_give_the_same_numbers(monkeypatch, name):
     from implicit_cloth import backend
     from implicit_cloth.solvers import multigrid
 
-    monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES", 0)
-    monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES_OTHER_LAYERS", 0)
+    monkeypatch.setattr("implicit_cloth.backend.THREAD_MIN_VERTICES", 0)
+    monkeypatch.setattr("implicit_cloth.backend.THREAD_MIN_VERTICES_OTHER_LAYERS", 0)
     monkeypatch.setattr(multigrid, "FLOAT32_MIN_VERTICES", 0 if name.endswith("float32") else None)
     sim = ic.Simulator(_scene(res=(30, 27)), dt=H)
     m, A, b = _system(sim, steps=4)

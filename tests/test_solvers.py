@@ -455,8 +455,8 @@ def test_threads_give_the_same_numbers_and_match_a_direct_solve(monkeypatch, vcy
     from implicit_cloth import backend
     from implicit_cloth.solvers import multigrid
 
-    monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES", 0)
-    monkeypatch.setattr(multigrid, "THREAD_MIN_VERTICES_OTHER_LAYERS", 0)
+    monkeypatch.setattr("implicit_cloth.backend.THREAD_MIN_VERTICES", 0)
+    monkeypatch.setattr("implicit_cloth.backend.THREAD_MIN_VERTICES_OTHER_LAYERS", 0)
     monkeypatch.setattr(multigrid, "FLOAT32_MIN_VERTICES", 0 if vcycle == "float32" else None)
     monkeypatch.setattr(multigrid, "CHUNKED_SUMS_MIN_VERTICES", 0 if vcycle == "chunked sums" else 10**9)
     sim = ic.Simulator(_scene(res=(30, 27)), dt=H)

@@ -186,8 +186,8 @@ class Springs:
         if not self.backend.threaded(self.n):
             return None
         if self._chunks is None:
+            from ..backend import THREAD_CHUNKS
             from ..kernels.springs import chunk_springs
-            from ..solvers.multigrid import THREAD_CHUNKS
 
             self._chunks = chunk_springs(self.n, self._sorted[0], self._sorted[1], THREAD_CHUNKS)
         return self._chunks

@@ -35,7 +35,7 @@ Every function is compiled with ``cache=True`` (the compiled code is stored
 next to this file in ``__pycache__``), so the compilation (25-50 s on the
 2-core test machine) is paid once per installation, not per run.
 Threads (:func:`implicit_cloth.backend.threads`, one by default): the passes of levels of at least
-``multigrid.thread_min_vertices()`` vertices run on numba threads (``prange``) over a fixed number of
+``backend.thread_min_vertices()`` vertices run on numba threads (``prange``) over a fixed number of
 chunks, each writing only its own rows (:func:`_psymmv`: a stored block between two chunks is read by
 both, each taking its side), so the numbers are the same, to the last bit, for every thread count and
 as serially. CG's dot products are one serial sum on small cloths; from

@@ -35,8 +35,17 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
+from .. import backend as _backend
 from ..assembly import SystemMatrix, accumulate_product
-from ..backend import Backend, BackendMismatch, get_backend, threads
+from ..backend import (
+    THREAD_CHUNKS,
+    Backend,
+    BackendMismatch,
+    get_backend,
+    set_numba_threads,
+    thread_min_vertices,
+    threads,
+)
 from .blocks import block_diagonal_operator, inv3
 from .pcg import Filter, SolveResult
 
@@ -719,38 +728,12 @@ def smoother_damping(omega: float, lam: float, bound: float) -> float:
 FLOAT32_MIN_VERTICES: int | None = 32768
 
 
-#: Levels with at least this many vertices run their passes on threads when more than one is allowed
-#: (:func:`implicit_cloth.backend.threads`) and numba's threading layer is GNU OpenMP's (see
-#: :mod:`implicit_cloth.kernels.layer`); below it a parallel region costs more than it saves. Measured
-#: (2026-12-06, the hanging peer scene one step a frame, 2 threads against 1): with OpenMP's threads spinning
-#: between regions, from 1024 vertices 1.30 / 1.58 / 1.59x at 64² / 128² / 256² (CG's sums still serial;
-#: from 16384, 1.0 / 1.3x at 64² / 128²); with them sleeping, as the library sets them, each region pays a
-#: wake-up and from 1024 vertices the 32² cloth took 3.4-3.9 ms a step on two threads against 2.4-3.0 on one,
-#: the 256² cloth 212-234 against 184-216 from 4096.
-THREAD_MIN_VERTICES = 4096
-#: The same threshold under TBB's layer or numba's work queue, where a second thread joins a short region late
-#: (from 1024 vertices two threads took 2.1x / 1.6x one's time at 64², 0.87x / 1.1x at 128²).
-THREAD_MIN_VERTICES_OTHER_LAYERS = 16384
-
-
-def thread_min_vertices() -> int:
-    """The smallest level run on threads, for the threading layer this process runs (launched if need be)."""
-    from ..kernels import layer
-
-    if layer.launch() == "omp":
-        return THREAD_MIN_VERTICES
-    return max(THREAD_MIN_VERTICES, THREAD_MIN_VERTICES_OTHER_LAYERS)
-
-
 #: From this many fine vertices CG's dot products are summed over THREAD_CHUNKS fixed chunks, whatever the
 #: thread count (the partial sums on threads when the finest level's passes are, then added in order), so
 #: that they can run on threads and still give the same numbers at every thread count; smaller cloths keep
 #: one plain serial sum (the numbers they always had). At 256² on two threads the serial sums were about a
 #: tenth of a CG iteration.
 CHUNKED_SUMS_MIN_VERTICES = 16384
-#: Chunks every threaded pass is cut into (fixed: the chunks, not the threads, decide what is summed where,
-#: so every thread count gives the same numbers).
-THREAD_CHUNKS = 8
 
 
 def thread_chunks(n: int, uI: np.ndarray, uJ: np.ndarray, chunks: int = THREAD_CHUNKS) -> tuple:
@@ -853,14 +836,6 @@ class PackedHierarchy(NamedTuple):
     pbb: np.ndarray       #: each chunk's incoming column blocks (local to the level), ascending
 
 
-def set_numba_threads() -> None:
-    """Let numba's parallel regions use :func:`implicit_cloth.backend.threads` threads (at most its pool)."""
-    from numba import config, set_num_threads
-
-    pool = int(config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
-    set_num_threads(max(1, min(threads(), pool)))
-
-
 class _FusedHierarchy:
     """The hierarchy packed into flat arrays for the compiled kernels (:mod:`implicit_cloth.kernels.pcg`), and
     their drivers.
@@ -945,7 +920,7 @@ class _FusedHierarchy:
         self.auI, self.auJ = self.uI[:u0], self.uJ[:u0]
 
     def _chunks(self, systems: list[SystemMatrix]) -> None:
-        """Every level's chunks for the threaded passes: those of at least THREAD_MIN_VERTICES vertices (which
+        """Every level's chunks for the threaded passes: those of at least backend.THREAD_MIN_VERTICES vertices (which
         run on threads is decided per solve, :meth:`_threaded_levels`)."""
         K = THREAD_CHUNKS + 1
         L1 = len(systems)
@@ -955,7 +930,7 @@ class _FusedHierarchy:
         self.lpb = np.zeros(L1 * K, dtype=np.int64)
         lists, base = [], 0
         for l, sm in enumerate(systems):
-            if sm.n < THREAD_MIN_VERTICES:
+            if sm.n < _backend.THREAD_MIN_VERTICES:
                 continue
             u0, u1 = self.uoff[l], self.uoff[l + 1]
             vb, kb, ip, ib = thread_chunks(sm.n, self.uI[u0:u1], self.uJ[u0:u1])
