@@ -171,6 +171,27 @@ def test_assembled_jacobians_match_central_differences_on_each_path(path):
     assert np.abs(dFdv - fd).max() <= 1e-6 * np.abs(fd).max()
 
 
+def _reset_then_finalize(sm, vals, d):
+    """``reset_diagonal(d)`` over the blocks ``vals`` (checked: zeros but ``d_i I`` on the diagonal), then
+    ``finalize`` of the blocks ``vals``; returns the matrix."""
+    sm.blocks[:] = vals
+    sm.reset_diagonal(d)
+    expect = np.zeros_like(vals)
+    expect[sm.diag_index] = d[:, None, None] * np.eye(3)
+    assert np.array_equal(sm.blocks, expect)
+    sm.blocks[:] = vals
+    return sm.finalize()
+
+
+def _dense(sm, vals):
+    """The dense matrix of the blocks ``vals`` on ``sm``'s pattern."""
+    n = 3 * (len(sm.bptr) - 1)
+    dense = np.zeros((n, n))
+    for b, (i, j) in enumerate(zip(sm.block_rows, sm.block_cols)):
+        dense[3 * i:3 * i + 3, 3 * j:3 * j + 3] = vals[b]
+    return dense
+
+
 def test_finalize_reset_and_add_diagonal_agree_on_both_paths():
     rng = np.random.default_rng(2)
     pairs = np.array([[0, 3], [1, 2], [3, 0], [2, 4], [4, 4], [1, 4]])
@@ -179,20 +200,12 @@ def test_finalize_reset_and_add_diagonal_agree_on_both_paths():
     d = rng.uniform(1, 2, 5)
     out = {}
     for p, sm in sms.items():
-        sm.blocks[:] = vals
-        sm.reset_diagonal(d)
-        expect = np.zeros_like(vals)
-        expect[sm.diag_index] = d[:, None, None] * np.eye(3)
-        assert np.array_equal(sm.blocks, expect)
-        sm.blocks[:] = vals
         csr, v0 = sm.csr, sm.version
-        A = sm.finalize()
+        A = _reset_then_finalize(sm, vals, d)
         assert A is csr and sm.version == v0 + 1
         out[p] = A.toarray()
-    dense = np.zeros((15, 15))
     sm = sms["numba"]
-    for b, (i, j) in enumerate(zip(sm.block_rows, sm.block_cols)):
-        dense[3 * i:3 * i + 3, 3 * j:3 * j + 3] = vals[b]
+    dense = _dense(sm, vals)
     assert np.array_equal(out["numba"], dense) and np.array_equal(out["numpy"], dense)
     for p, sm in sms.items():
         sm.blocks[:] = vals
@@ -432,17 +445,8 @@ def test_threaded_assembly_passes_give_the_serial_numbers(monkeypatch, n_threads
         monkeypatch.setattr(kernels, name, lambda *a, _r=real, _n=name: calls.append(_n) or _r(*a))
     with backend.using_threads(n_threads):
         assert b.threaded(g.n_vertices) is (n_threads > 1)
-        sm.blocks[:] = vals
-        sm.reset_diagonal(d)
-        expect = np.zeros_like(vals)
-        expect[sm.diag_index] = d[:, None, None] * np.eye(3)
-        assert np.array_equal(sm.blocks, expect)
-        sm.blocks[:] = vals
-        A = sm.finalize()
+        A = _reset_then_finalize(sm, vals, d)
         y = b.block_matvec(sm.blocks, sm.bptr, sm.block_cols, x)
     assert len(calls) == (3 if n_threads > 1 else 0)
-    dense = np.zeros((3 * g.n_vertices,) * 2)
-    for k, (i, j) in enumerate(zip(sm.block_rows, sm.block_cols)):
-        dense[3 * i:3 * i + 3, 3 * j:3 * j + 3] = vals[k]
-    assert np.array_equal(A.toarray(), dense)
+    assert np.array_equal(A.toarray(), _dense(sm, vals))
     assert np.array_equal(y, A @ x)      # scipy's CSR product: the same additions in the same order
