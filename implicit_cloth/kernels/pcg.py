@@ -634,11 +634,9 @@ def vcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
 
 @njit(cache=True, fastmath={"contract"})
 def _vdot(x, y):
-    """``x . y``, one serial sum (the K-cycle's coarse levels: the same numbers at every thread count)."""
-    s = 0.0
-    for k in range(len(x)):
-        s += x[k] * y[k]
-    return s
+    """``x . y``, one serial sum (:func:`_sums_range`; the K-cycle's coarse levels: the same numbers at every
+    thread count)."""
+    return _sums_range(x, y, x, x, 0.0, x[:0], 0, 0, len(x))[0]
 
 
 @njit(cache=True, fastmath={"contract"})

@@ -362,7 +362,7 @@ class Multigrid:
             self.setup(system, filt)
 
     def apply(self, r: np.ndarray) -> np.ndarray:
-        """One V-cycle: an approximation of ``(S A S + I - S)^-1 r``."""
+        """One cycle (:attr:`cycle`, V or K): an approximation of ``(S A S + I - S)^-1 r``."""
         return self.engine.apply(r)
 
     def fused_pcg(self, A, b: np.ndarray, z: np.ndarray, filt: Filter, **kw) -> tuple[np.ndarray, SolveResult]:
@@ -905,6 +905,8 @@ class _FusedHierarchy:
         self.wb = np.zeros(3 * int(self.voff[-1]))
         self.wx = np.zeros(3 * int(self.voff[-1]))
         self.wr = np.zeros(3 * int(self.voff[-1]))
+        #: the K-cycle's scratch for :meth:`apply` (:func:`implicit_cloth.kernels.pcg.kcycle`), made on first use
+        self._kscratch: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._chunks(systems)
         self.filt: Filter | None = None
         self.version = -1
@@ -968,10 +970,9 @@ class _FusedHierarchy:
             from ..kernels import smoothed as _smoothed
 
         flat = fine.blocks.reshape(-1)
-        tmin = thread_min_vertices() if threads() > 1 else None
-        par = tmin is not None and fine.n >= tmin       # the copies on threads: the same numbers
-        if par or mg.smoothed:
-            set_numba_threads()
+        par = mg.backend.threaded(fine.n)               # the copies on threads: the same numbers
+        if mg.smoothed and not par:
+            set_numba_threads()     # the smoothed set-up's kernels are parallel regions at every thread count
         gather = _fused.pgather_blocks if par else _fused.gather_blocks
         gather(flat, fine.diag_index, self.adg.reshape(-1))
         gather(flat, self._uidx[0], self.auv.reshape(-1))
@@ -1018,7 +1019,7 @@ class _FusedHierarchy:
             else:
                 args = (src_d.reshape(-1), src_u.reshape(-1), self.dg[v1:v2].reshape(-1),
                         self.uv[u1:u2].reshape(-1), gal[0], gal[1], gal[2], gal[3], gal[4], gal[5])
-                if tmin is not None and v1 - v0 >= tmin:     # on threads (one: slower than serial)
+                if mg.backend.threaded(v1 - v0):     # on threads (one: slower than serial)
                     _fused.pgalerkin(*(args[:4] + self._gal_chunks(l - 1)))
                 else:
                     _fused.galerkin(*args)
@@ -1109,9 +1110,12 @@ class _FusedHierarchy:
         r = np.ascontiguousarray(r, dtype=float)
         out = np.empty_like(r)
         if self.mg.cycle == "K":
-            L = len(self.voff)
-            _fused.kcycle(r, out, *self._hier(), self.wb, self.wx, self.wr, np.zeros_like(self.wb),
-                          np.zeros_like(self.wb), np.zeros(L, dtype=np.int64), np.zeros(2 * L), K_THRESHOLD)
+            if self._kscratch is None:           # the K-steps' kept iterates and coefficients, made once
+                L = len(self.voff)
+                self._kscratch = (np.zeros_like(self.wb), np.zeros_like(self.wb), np.zeros(L, dtype=np.int64),
+                                  np.zeros(2 * L))
+            kc, kv, kstage, kcoef = self._kscratch
+            _fused.kcycle(r, out, *self._hier(), self.wb, self.wx, self.wr, kc, kv, kstage, kcoef, K_THRESHOLD)
         else:
             _fused.vcycle(r, out, *self._hier(), self.wb, self.wx, self.wr)
         return out
