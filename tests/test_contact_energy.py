@@ -312,9 +312,9 @@ def _free_residuals(newton: int, n: int = 16, steps: int = 6) -> np.ndarray:
     last: list[float] = []
     solve = sim.integrator.step
 
-    def step(state, h, constraints=None, guess=None, newton=None, start=None):
+    def step(state, h, constraints=None, guess=None, newton=None, start=None, **kw):
         v0 = state.v.copy()
-        new, info = solve(state, h, constraints, guess, newton, start)
+        new, info = solve(state, h, constraints, guess, newton, start, **kw)
         r = m[:, None] * (new.v - v0) / h - sim.model.forces(new.x, new.v, new.t)
         free = np.ones(len(m), dtype=bool)
         if constraints is not None:

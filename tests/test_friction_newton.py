@@ -148,8 +148,8 @@ def _asked_and_missed(pause: int | None) -> list[list[tuple[bool, bool]]]:
         steps.append([])
         return real_rounds(self, *args, **kw)
 
-    def step(self, state, h, constraints=None, guess=None, newton=None, start=None):
-        new, info = real_step(self, state, h, constraints, guess, newton, start)
+    def step(self, state, h, constraints=None, guess=None, newton=None, start=None, **kw):
+        new, info = real_step(self, state, h, constraints, guess, newton, start, **kw)
         if start is None and constraints is not None and constraints.n_contacts:
             asked = newton is not None and newton > 1
             steps[-1].append((asked, asked and info.friction_converged is False))
@@ -314,3 +314,68 @@ def test_a_new_contacts_friction_is_solved_in_the_step_that_finds_it(paused):
     assert np.allclose(sim.positions[:, 2], TH, atol=1e-12)
     assert np.allclose(sim.velocities[:, 2], 0.0, atol=1e-12)     # the contacts then leave inelastically
     assert sim.velocities[:, 0] == pytest.approx(np.full(sim.model.n, vx0 - mu * (vz1 - vz0 + g * h)), rel=1e-6)
+
+
+def _rounds_of_a_landing(skip: bool) -> tuple[list[tuple[bool, bool]], int]:
+    """A 24² drape landing on the sphere (dt 1/60, 0.4 s): per solve of a contact round, whether the integrator
+    skipped the friction's iterations (asked for, friction_converged None) and whether the collider then released
+    a contact and solved the round again; and the correction solves made. ``skip`` False: the collider passes
+    no ``redone`` (the rounds as before 2026-12-06)."""
+    from implicit_cloth.collision import collider as col
+    from implicit_cloth.integrators import base
+
+    sim = ic.Simulator(ic.Scene.from_dict(drop_scene("sphere", n=24, dt=1 / 60, duration=0.4)))
+    seen: list[tuple[bool, bool]] = []
+    corrections = [0]
+    real_step, real_after, real_fn = base.ImplicitIntegrator.step, col.Collider._after_solve, \
+        base.ImplicitIntegrator._friction_newton
+
+    def step(self, state, h, constraints=None, guess=None, newton=None, start=None, redone=None):
+        said: list[bool] = []
+
+        def asked(J):                       # called only where the iterations would follow the first solve
+            said.append(redone(J))
+            return said[-1]
+        new, info = real_step(self, state, h, constraints, guess, newton, start, redone and asked)
+        if redone is not None:
+            skipped = any(said)
+            assert not skipped or (info.friction_converged is None and info.solves == 1)
+            seen.append((skipped, False))
+        return new, info
+
+    def after(self, active, *args, **kw):
+        out = real_after(self, active, *args, **kw)
+        if seen:
+            seen[-1] = (seen[-1][0], len(out[0]) < len(active) and out[1])
+        return out
+
+    def fn(self, *args, **kw):
+        out = real_fn(self, *args, **kw)
+        corrections[0] += 1
+        return out
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(base.ImplicitIntegrator, "step", step)
+    mp.setattr(col.Collider, "_after_solve", after)
+    mp.setattr(base.ImplicitIntegrator, "_friction_newton", fn)
+    if not skip:
+        mp.setattr(col.Collider, "_pulls", lambda self, *a: None)
+    try:
+        traj = sim.run()
+    finally:
+        mp.undo()
+    assert traj.report["status"] == "ok", traj.report["reason"]
+    return seen, corrections[0]
+
+
+def test_a_round_the_collider_redoes_for_a_release_makes_no_friction_iterations():
+    """A round whose first solve pulls a contact hard enough to be released (``collider.PULL_SPEED``) is solved
+    again whatever its friction does: the integrator skips its friction iterations (``redone``). Every skipped
+    solve is followed by a release and another round (the prediction is the collider's own rule), the landing has
+    such rounds, and it makes fewer friction continuations than with the iterations run in every round."""
+    seen, continuations = _rounds_of_a_landing(skip=True)
+    skipped = [released for s, released in seen if s]
+    assert len(skipped) >= 3
+    assert all(skipped)
+    _, before = _rounds_of_a_landing(skip=False)
+    assert continuations < before

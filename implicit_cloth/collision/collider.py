@@ -195,7 +195,8 @@ class Collider:
             cons = self._constraints(pins, active, state.t, h)
             ts = time.perf_counter()
             k = max(round_newton or 1, friction_newton) if friction_newton and cons.n_contacts else round_newton
-            new, si = integrator.step(state, h, cons, guess, k, start)
+            redone = self._pulls(active, cons, released) if friction_newton and cons.n_contacts else None
+            new, si = integrator.step(state, h, cons, guess, k, start, redone=redone)
             t_solve += time.perf_counter() - ts
             start = None
             total.absorb(si)
@@ -292,6 +293,19 @@ class Collider:
         elif len(active):
             friction.update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob], every)
         return new, cons, t
+
+    def _pulls(self, active: contacts.Planes, cons: Constraints, released: np.ndarray):
+        """For :meth:`ImplicitIntegrator.step <implicit_cloth.integrators.base.ImplicitIntegrator.step>`'s
+        ``redone``: whether a solve's constraint impulse ``J`` (N, 3) pulls a contact of ``active`` (not yet
+        ``released`` in the step) towards its obstacle hard enough for :meth:`_after_solve` to release it and
+        solve the round again (:data:`PULL_SPEED`), so that the integrator skips the friction's Newton iterations
+        of a solve the round throws away. ``cons`` are ``active``'s constraints (the same order)."""
+        idx, normal = active.idx, cons.normal
+        limit = np.where(released[idx], -np.inf, -PULL_SPEED * self.ctx.masses[idx])
+
+        def redone(J: np.ndarray) -> bool:
+            return bool(np.any(np.einsum("ij,ij->i", J[idx], normal) < limit))
+        return redone
 
     def _after_solve(self, active: contacts.Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray,
                      h: float, settled: np.ndarray, switched: np.ndarray, released: np.ndarray,
