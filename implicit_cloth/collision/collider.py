@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -294,7 +294,8 @@ class Collider:
             friction.update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob], every)
         return new, cons, t
 
-    def _pulls(self, active: contacts.Planes, cons: Constraints, released: np.ndarray):
+    def _pulls(self, active: contacts.Planes, cons: Constraints,
+               released: np.ndarray) -> Callable[[np.ndarray], bool]:
         """For :meth:`ImplicitIntegrator.step <implicit_cloth.integrators.base.ImplicitIntegrator.step>`'s
         ``redone``: whether a solve's constraint impulse ``J`` (N, 3) pulls a contact of ``active`` (not yet
         ``released`` in the step) towards its obstacle hard enough for :meth:`_after_solve` to release it and
