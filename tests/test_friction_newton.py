@@ -319,7 +319,7 @@ def test_a_new_contacts_friction_is_solved_in_the_step_that_finds_it(paused):
 def _rounds_of_a_landing(skip: bool) -> tuple[list[tuple[bool, bool]], int]:
     """A 24² drape landing on the sphere (dt 1/60, 0.4 s): per solve of a contact round, whether the integrator
     skipped the friction's iterations (asked for, friction_converged None) and whether the collider then released
-    a contact and solved the round again; and the correction solves made. ``skip`` False: the collider passes
+    a contact and solved the round again; and the friction continuations made. ``skip`` False: the collider passes
     no ``redone`` (the rounds as before 2026-12-06)."""
     from implicit_cloth.collision import collider as col
     from implicit_cloth.integrators import base
