@@ -55,8 +55,8 @@ def threads() -> int:
     """Threads the compiled solver may use: :func:`set_threads`, else ``$IMPLICIT_CLOTH_THREADS``, else 1.
 
     Only the numba back-end uses more than one, and only on multigrid levels of at least
-    :func:`thread_min_vertices` vertices (4096 under GNU OpenMP's threading
-    layer, which the kernels ask numba for first, :mod:`implicit_cloth.kernels.layer`; 16384 under the others):
+    :func:`thread_min_vertices` vertices (16384 under every threading layer; GNU OpenMP's, which the kernels
+    ask numba for first, :mod:`implicit_cloth.kernels.layer`, had 4096 until 2026-12-06):
     the products, smoothing sweeps, transfers, CG's updates and, from 16384 fine vertices, its dot products,
     and the Galerkin refresh; the springs' assembly from the same size. The numbers are the same for every thread
     count: the chunks, not the threads, decide what is summed where, so a run is reproducible bit for bit.
@@ -105,8 +105,13 @@ def using_threads(n: int | None) -> Iterator[None]:
 #: between regions, from 1024 vertices 1.30 / 1.58 / 1.59x at 64² / 128² / 256² (CG's sums still serial;
 #: from 16384, 1.0 / 1.3x at 64² / 128²); with them sleeping, as the library sets them, each region pays a
 #: wake-up and from 1024 vertices the 32² cloth took 3.4-3.9 ms a step on two threads against 2.4-3.0 on one,
-#: the 256² cloth 212-234 against 184-216 from 4096.
-THREAD_MIN_VERTICES = 4096
+#: the 256² cloth 212-234 against 184-216 from 4096. From 4096 the 64² cloth then gained 1.09x on a quiet
+#: machine, but on a busier evening (2026-12-06, a later session, alternating in one process) it lost: the
+#: hanging 64² step 15.1-16.4 ms on two threads from 4096 against 13.2-13.7 from 16384 (one thread 14.1-15.5),
+#: the shared 64² drape 122-162 against 106 ms a frame, while 128² and 256² were level either way (hanging
+#: 55-57 / 251-308 against 53-61 / 259-273 ms, the 128² drape's landing 925 against 871). A second thread on a
+#: 4096-vertex level wins at most a tenth and can lose a third, so levels run on threads from 16384 vertices.
+THREAD_MIN_VERTICES = 16384
 #: The same threshold under TBB's layer or numba's work queue, where a second thread joins a short region late
 #: (from 1024 vertices two threads took 2.1x / 1.6x one's time at 64², 0.87x / 1.1x at 128²).
 THREAD_MIN_VERTICES_OTHER_LAYERS = 16384
