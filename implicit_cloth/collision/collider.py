@@ -195,7 +195,7 @@ class Collider:
             cons = self._constraints(pins, active, state.t, h)
             ts = time.perf_counter()
             k = max(round_newton or 1, friction_newton) if friction_newton and cons.n_contacts else round_newton
-            redone = self._pulls(active, cons, released) if friction_newton and cons.n_contacts else None
+            redone = self._pulls(active, cons, h, released) if friction_newton and cons.n_contacts else None
             new, si = integrator.step(state, h, cons, guess, k, start, redone=redone)
             t_solve += time.perf_counter() - ts
             start = None
@@ -294,19 +294,24 @@ class Collider:
             friction.update(active, cons, si.constraint_impulse, new.v, h, self._mu[active.ob], every)
         return new, cons, t
 
-    def _pulls(self, active: contacts.Planes, cons: Constraints,
+    def _pulls(self, active: contacts.Planes, cons: Constraints, h: float,
                released: np.ndarray) -> Callable[[np.ndarray], bool]:
         """For :meth:`ImplicitIntegrator.step <implicit_cloth.integrators.base.ImplicitIntegrator.step>`'s
-        ``redone``: whether a solve's constraint impulse ``J`` (N, 3) pulls a contact of ``active`` (not yet
-        ``released`` in the step) towards its obstacle hard enough for :meth:`_after_solve` to release it and
-        solve the round again (:data:`PULL_SPEED`), so that the integrator skips the friction's Newton iterations
-        of a solve the round throws away. ``cons`` are ``active``'s constraints (the same order)."""
+        ``redone``: whether a solve's constraint impulse ``J`` (N, 3) over the step ``h`` makes
+        :meth:`_after_solve` release a contact of ``active`` and solve the round again (:meth:`_pulling`, on the
+        normal force the friction update will give it), so that the integrator skips the friction's Newton
+        iterations of a solve the round throws away. ``cons`` are ``active``'s constraints (the same order)."""
         idx, normal = active.idx, cons.normal
-        limit = np.where(released[idx], -np.inf, -PULL_SPEED * self.ctx.masses[idx])
 
         def redone(J: np.ndarray) -> bool:
-            return bool(np.any(np.einsum("ij,ij->i", J[idx], normal) < limit))
+            return bool(np.any(self._pulling(idx, np.einsum("ij,ij->i", J[idx], normal) / h, h, released)))
         return redone
+
+    def _pulling(self, idx: np.ndarray, force: np.ndarray, h: float, released: np.ndarray) -> np.ndarray:
+        """Which contacts at vertices ``idx`` with normal forces ``force`` (N; negative: pulling the vertex towards
+        the obstacle) are released within the step: a pull worth more than :data:`PULL_SPEED` of the vertex's
+        velocity over ``h``, at a vertex not ``released`` in the step yet."""
+        return (force * h < -PULL_SPEED * self.ctx.masses[idx]) & ~released[idx]
 
     def _after_solve(self, active: contacts.Planes, cons: Constraints, J: np.ndarray | None, v: np.ndarray,
                      h: float, settled: np.ndarray, switched: np.ndarray, released: np.ndarray,
@@ -341,7 +346,7 @@ class Collider:
             if first:
                 redo |= ~active.stick & np.any(cons.velocity != 0.0, axis=1)
             again = bool(np.any(changed & redo))
-        pull = (active.force * h < -PULL_SPEED * self.ctx.masses[active.idx]) & ~released[active.idx]
+        pull = self._pulling(active.idx, active.force, h, released)
         if np.any(pull):
             released[active.idx[pull]] = True
             active = active.take(~pull)
