@@ -27,7 +27,9 @@ measure of anything).
 
 The library's own preconditioners, compiled (``lib_multigrid``: the plain multigrid, which ``jacobi`` writes
 again in numpy; ``lib_smoothed``: the smoothed multigrid; ``lib_smoothed_K``: the same with the K-cycle,
-``solver.cycle = "K"``), solve the same systems where they were captured, on
+``solver.cycle = "K"``; ``lib_smoothed_identity``: the smoothed multigrid with its contacts' constrained
+directions weighed in the coarse levels by the filtered matrix's identity, as before 2026-12-07, instead of
+by the vertices' masses), solve the same systems where they were captured, on
 the model's live system matrix, as the integrator runs them: set-up and solve timed together (best of 3,
 ``--threads`` threads), with their iterations and true error; for them the table gives ms instead of passes.
 
@@ -58,7 +60,12 @@ from implicit_cloth.solvers.multigrid import grid_prolongations
 from implicit_cloth.solvers.pcg import Filter, filtered_pcg
 
 #: the library's own preconditioners, compiled (numba), timed on the live system of the captured solve
-LIBRARY = {"lib_multigrid": "multigrid", "lib_smoothed": "multigrid_smoothed", "lib_smoothed_K": "multigrid_smoothed+K"}
+LIBRARY = {"lib_multigrid": "multigrid", "lib_smoothed": "multigrid_smoothed", "lib_smoothed_K": "multigrid_smoothed+K",
+           "lib_smoothed_identity": "multigrid_smoothed"}
+#: the library's smoothed multigrid as it was before 2026-12-07: the contacts' constrained directions weighed by
+#: the filtered matrix's identity in its coarse levels, not by the vertices' masses (Multigrid.masses None;
+#: SmoothedProlongation.weigh_constrained)
+UNWEIGHED = {"lib_smoothed_identity"}
 
 LEVERS = {
     "jacobi": {}, "jacobi2": {"nu": 2}, "W": {"cycle": "W"},
@@ -81,6 +88,8 @@ def library_solves(model, A, b: np.ndarray, z: np.ndarray, filters: dict, tol: f
         pname, cycle = series(LIBRARY[name])
         pc = make_preconditioner(pname, model, "numba")
         pc.cycle = cycle
+        if name in UNWEIGHED:
+            pc.masses = None
         for key, filt in filters.items():
             best = np.inf
             for _ in range(repeats):
@@ -310,7 +319,7 @@ def solve_all(sysd: dict, levers: list[str], tol: float, label: str, key: str = 
 
 def markdown(res: dict) -> str:
     out = [f"Iterations / true error of dv / fine-level matrix passes of the whole solve, tolerance {res['tolerance']:g}; "
-           f"the library's own preconditioners (`lib_multigrid`, `lib_smoothed`, `lib_smoothed_K`: compiled, "
+           f"the library's own preconditioners (`lib_*`: compiled, "
            f"{res.get('threads', 1)} thread(s)) give their set-up and solve's ms (best of 3) instead of passes.",
            ""]
     for label in dict.fromkeys(r["system"] for r in res["rows"]):

@@ -5,6 +5,7 @@ compiled path against the numpy reference, and the iterations it saves on a wrin
 import numpy as np
 import pytest
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 from test_solvers import ACCELERATORS, NUMBA, H, _direct, _mesh_file, _scene, _system
 
 import implicit_cloth as ic
@@ -18,9 +19,11 @@ def _filter(m):
                   np.stack([np.diag([1.0, 0.0, 1.0]), np.diag([0.0, 0.0, 1.0])]))
 
 
-def _independent_p(A, filt, P0, omega):
-    """``F (P0 kron I3 - w D^-1 A_f (P0 kron I3))`` kept on P0's block pattern, with ``A_f = S A S + I - S`` and
-    ``F`` restoring every fine vertex's block row sum to I, written with scipy products only."""
+def _independent_p(A, filt, P0, omega, masses=None):
+    """``W F (P0 kron I3 - w D^-1 A_f (P0 kron I3))`` kept on P0's block pattern, with ``A_f = S A S + I - S``,
+    ``F`` restoring every fine vertex's block row sum to I and ``W`` weighing the constrained directions of the
+    partially constrained vertices by ``sqrt(m)`` (``S + sqrt(m) (I - S)``; I elsewhere), written with scipy
+    products only."""
     S = sp.block_diag(list(filt.matrices()), format="csr")
     I3n = sp.identity(A.shape[0], format="csr")
     Af = sp.csr_array(S @ A @ S + (I3n - S))
@@ -32,7 +35,10 @@ def _independent_p(A, filt, P0, omega):
     Pt = sp.csr_array((P3 - omega * (Dinv @ (Af @ P3))) * mask)
     E = sp.kron(np.ones((P0.shape[1], 1)), np.eye(3), format="csr")
     rs = (Pt @ E).toarray().reshape(n, 3, 3)
-    return sp.csr_array(sp.block_diag(list(np.linalg.inv(rs)), format="csr") @ Pt), Af
+    W = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    if masses is not None:
+        W[filt.partial] = filt.partial_S + np.sqrt(masses[filt.partial])[:, None, None] * (np.eye(3) - filt.partial_S)
+    return sp.csr_array(sp.block_diag(list(W @ np.linalg.inv(rs)), format="csr") @ Pt), Af
 
 
 @pytest.mark.parametrize("accelerator", ACCELERATORS)
@@ -44,19 +50,23 @@ def test_smoothed_prolongation_and_coarse_matrix_against_an_independent_construc
     assert mg.name == "multigrid_smoothed" and mg.smoothed and mg.n_levels >= 3
     mg.setup(None, filt)
     P0 = grid_prolongations(33, 20)[0]
-    ref, Af = _independent_p(A, filt, P0, SMOOTH_P_OMEGA)
+    ref, Af = _independent_p(A, filt, P0, SMOOTH_P_OMEGA, m.masses)
     if accelerator == "numpy":
         got = mg.engine.P3[0]
     else:
         fh = mg.engine
         got = mg.sprol[0].csr(fh.pval[:9 * int(fh.pnnz[1])].reshape(-1, 3, 3))
     assert np.allclose(got.toarray(), ref.toarray(), rtol=1e-10, atol=1e-12)
-    # a translation is interpolated exactly; the blocks do couple the components (not P0 kron I3)
+    # a translation is interpolated exactly (at the partially constrained vertices its constrained part
+    # weighed by sqrt(m)); the blocks do couple the components (not P0 kron I3)
+    W = np.broadcast_to(np.eye(3), (m.n, 3, 3)).copy()
+    S = filt.partial_S
+    W[filt.partial] = S + np.sqrt(m.masses[filt.partial])[:, None, None] * (np.eye(3) - S)
+    assert not np.allclose(W[filt.partial], np.eye(3))
     for a in range(3):
         e = np.zeros(3 * P0.shape[1])
         e[a::3] = 1.0
-        t = got @ e
-        assert np.allclose(t[a::3], 1.0, atol=1e-12) and np.allclose(np.delete(t.reshape(-1, 3), a, 1), 0, atol=1e-12)
+        assert np.allclose((got @ e).reshape(-1, 3), W[:, :, a], atol=1e-12)
     P3 = sp.csr_array(sp.kron(P0, sp.identity(3), format="csr"))
     assert np.abs((got - P3).toarray()).max() > 1e-3
     # the first coarse matrix is P^T (S A S + I - S) P
@@ -75,6 +85,47 @@ def test_smoothed_prolongation_and_coarse_matrix_against_an_independent_construc
         Cg[J, :, I, :] = U.transpose(0, 2, 1)
         Cg = Cg.reshape(3 * nc, 3 * nc)
     assert np.allclose(Cg, C, rtol=1e-10, atol=1e-10 * np.abs(C).max())
+
+
+@pytest.mark.parametrize("accelerator", ACCELERATORS)
+def test_the_coarse_levels_weigh_a_contact_region_by_its_mass(accelerator):
+    """A region in contact (partially constrained vertices, normals of a sphere below the cloth): the coarse
+    levels weigh a coarse function's motion along the contacts' normals by the vertices' masses, not by the
+    filtered matrix's identity (1 kg, 1e5 times a vertex's mass here), and CG needs fewer iterations: 19 against
+    26 when measured; the solution within the tolerance of a direct solve either way, the constraints exact."""
+    sim = ic.Simulator(_scene(res=(48, 48)), dt=H)
+    m, A, b = _system(sim, steps=20)
+    x = sim.positions
+    r = np.linalg.norm(x[:, :2] - x[:, :2].mean(axis=0), axis=1)
+    part = np.flatnonzero(r < 0.3)
+    part = part[~np.isin(part, m.pinned)]
+    nrm = x[part] - (x.mean(axis=0) + [0.0, 0.0, -0.5])
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    filt = Filter(m.n, m.pinned, part, np.eye(3) - nrm[:, :, None] * nrm[:, None, :])
+    z = np.zeros_like(b)
+    z.reshape(-1, 3)[m.pinned] = 0.01
+    # the direct solve on the filter's range: dv = z + T y, (T^T A T) y = T^T (b - A z), T's columns per vertex
+    # the eigenvectors of S_i with eigenvalue 1
+    w, V = np.linalg.eigh(filt.matrices())
+    keep = (w > 0.5).ravel()
+    cols = V.transpose(0, 2, 1).reshape(-1, 3)[keep]             # the kept eigenvectors, one a row
+    rows = np.broadcast_to(np.arange(3 * m.n).reshape(-1, 1, 3), (m.n, 3, 3)).reshape(-1, 3)[keep]
+    T = sp.csr_array((cols.ravel(), (rows.ravel(), np.repeat(np.arange(len(cols)), 3))), shape=(3 * m.n, len(cols)))
+    y = spla.spsolve(sp.csc_matrix(T.T @ A @ T), T.T @ (b - A @ z))
+    ref = z + T @ y
+    its = {}
+    for weighed in (True, False):
+        mg = make_preconditioner("multigrid_smoothed", m, accelerator)
+        if not weighed:
+            mg.masses = None
+        mg.setup(None, filt)
+        dv, res = filtered_pcg(m.system.csr, b, z, filt, mg, tol=1e-3, mass=np.repeat(m.masses, 3))
+        assert res.converged and np.linalg.norm(dv - ref) / np.linalg.norm(ref) <= 1e-3
+        d3 = dv.reshape(-1, 3)
+        assert np.array_equal(d3[m.pinned], z.reshape(-1, 3)[m.pinned])
+        assert np.abs(np.einsum("ij,ij->i", d3[part], nrm)).max() <= 1e-14 * np.abs(dv).max()
+        its[weighed] = res.iterations
+    assert its[True] <= 0.8 * its[False], its
 
 
 @pytest.mark.parametrize("kind", ["grid", "mesh"])
@@ -191,6 +242,7 @@ def test_chunked_setup_kernels_give_the_serial_kernels_numbers():
         ks.smooth_prolongation(sd.reshape(-1), su.reshape(-1), e1.dinv[v0:v1].reshape(-1), spl.ptr, spl.p0,
                                spl.target, spl.t_ptr, spl.t_code, spl.t_w, e1.uI[u0:u1], e1.uJ[u0:u1], fc,
                                e1.Sc if l == 0 else e1._empty_S, e1.mg.p_omega, pb)
+        spl.weigh_constrained(pb.reshape(-1, 3, 3), filt, m.masses)   # (the finest level's only)
         assert np.array_equal(pb, e1.pval[9 * e1.pnnz[l]:9 * e1.pnnz[l + 1]])
         od, ou = np.zeros((v2 - v1) * 9), np.zeros((u2 - u1) * 9)
         args = (sd.reshape(-1), su.reshape(-1), od, ou, gal[0], gal[1], gal[3], gal[4], gal[5], gal[6], gal[8],
@@ -293,11 +345,13 @@ def _level_dense(mg, l):
 @pytest.mark.parametrize("accelerator", ACCELERATORS)
 def test_coarse_smoothers_contract_where_the_fixed_damping_amplified(accelerator):
     """A Galerkin level of the smoothed hierarchy can have ``lambda_max(D^-1 A)`` far above 2 (the 32² drape
-    landing on its sphere: about 4 on its 81-vertex level), where one block-Jacobi sweep damped by the fixed 0.7
-    multiplies the top mode by ``1 - 0.7 lambda < -1``: the V-cycle is then no CG preconditioner (on the 128²
-    drape CG broke down after 0-10 iterations). Protected (after a breakdown), each coarse level's damping
-    follows its estimated ``lambda_max`` (multigrid.SMOOTHER_RHO): against the level's eigenvalues computed
-    densely here, ``omega_l lambda_max < 2`` on every level of every setup of the landing."""
+    landing on its sphere: about 3.3 on its 81-vertex level; about 4 before the contacts' constrained directions
+    were weighed by their masses, SmoothedProlongation.weigh_constrained), where one block-Jacobi sweep damped
+    by the fixed 0.7 multiplies the top mode by ``1 - 0.7 lambda < -1``: the V-cycle is then no CG
+    preconditioner (on the 128² drape CG broke down after 0-10 iterations). Protected (after a breakdown),
+    each coarse level's damping follows its estimated ``lambda_max`` (multigrid.SMOOTHER_RHO): against the
+    level's eigenvalues computed densely here, ``omega_l lambda_max < 2`` on every level of every setup of the
+    landing."""
     from scipy.linalg import eigh
 
     from implicit_cloth.solvers.multigrid import SMOOTHER_RHO
@@ -318,7 +372,7 @@ def test_coarse_smoothers_contract_where_the_fixed_damping_amplified(accelerator
             worst = max(worst, mg.level_omega[l] * lam)
             assert mg.level_lambda[l] <= lam * (1 + 1e-9)            # the estimate: a lower bound
             assert mg.level_omega[l] == min(mg.omega, SMOOTHER_RHO / mg.level_lambda[l])   # (within the bound)
-    assert worst_fixed > 2.3            # the premise: the fixed damping amplified on some level
+    assert worst_fixed > 2.0            # the premise: the fixed damping amplified on some level
     assert worst < 2.0, worst
 
 
