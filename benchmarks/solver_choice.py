@@ -17,7 +17,9 @@ Cholesky at the coarsest level), each the preconditioner of the library's filter
 ``jacobi`` (the library's: one damped block-Jacobi sweep, omega 0.7, before and after), ``jacobi2`` (two
 sweeps), ``W`` (a W-cycle), ``chebyshev2`` / ``chebyshev3`` (a Chebyshev polynomial of ``D^-1 A`` of degree
 2 / 3 on ``[lmax / 30, lmax]``, ``lmax`` 1.1 times a 15-step power estimate per level), ``filtered_P``
-(coarse spaces in the free directions: prolongation ``S P``, coarse matrices ``P^T S A S P``), ``sa_rigid``
+(coarse spaces in the free directions: prolongation ``S P``, coarse matrices ``P^T S A S P``), ``weighed_P``
+(the constrained directions of the prolongation's rows weighed by ``sqrt(m)``: ``(S + sqrt(m) (I - S)) P``, as
+the library's smoothed multigrid does since 2026-12-07, here on the plain bilinear hierarchy), ``sa_rigid``
 (not this hierarchy: pyamg's smoothed aggregation with the six rigid motions at the step's positions as the
 near-null space, interpolation that follows the cloth's shape; its setup is rebuilt per system). The true
 error is against a sparse direct solve of the filtered system. Cost: fine-level matrix passes per CG
@@ -70,7 +72,7 @@ UNWEIGHED = {"lib_smoothed_identity"}
 LEVERS = {
     "jacobi": {}, "jacobi2": {"nu": 2}, "W": {"cycle": "W"},
     "chebyshev2": {"smoother": "chebyshev", "degree": 2}, "chebyshev3": {"smoother": "chebyshev", "degree": 3},
-    "filtered_P": {"filtered_p": True},
+    "filtered_P": {"filtered_p": True}, "weighed_P": {"weighed_p": True},
     "sa_rigid": {},
 }
 
@@ -185,14 +187,19 @@ class VCycle:
     """The numpy V-cycle with the levers of the module docstring."""
 
     def __init__(self, A, filt: Filter, Ps: list, nu: int = 1, cycle: str = "V", smoother: str = "jacobi",
-                 degree: int = 2, omega: float = 0.7, filtered_p: bool = False) -> None:
+                 degree: int = 2, omega: float = 0.7, filtered_p: bool = False, weighed_p: bool = False,
+                 masses: np.ndarray | None = None) -> None:
         S = _bdiag(filt.matrices())
         I3 = sp.identity(A.shape[0], format="csr")
         self.A = [sp.csr_array(S @ A @ S + (I3 - S))]
         self.P: list = []
         for l, P in enumerate(Ps):
             P3 = sp.csr_array(sp.kron(P, sp.identity(3), format="csr"))
-            if l == 0 and filtered_p:
+            if l == 0 and weighed_p and masses is not None:    # the library's smoothed multigrid's weights
+                Q = np.eye(3) - filt.matrices()
+                P3 = sp.csr_array(_bdiag(filt.matrices() + np.sqrt(masses)[:, None, None] * Q) @ P3)
+                C = P3.T @ self.A[-1] @ P3
+            elif l == 0 and filtered_p:
                 P3 = sp.csr_array(S @ P3)
                 C = P3.T @ (S @ A @ S) @ P3
                 d = np.abs(C.diagonal())        # directions no coarse function reaches: identity
@@ -297,7 +304,8 @@ def solve_all(sysd: dict, levers: list[str], tol: float, label: str, key: str = 
             continue
         t0 = time.perf_counter()
         try:
-            pc = SmoothedAggregation(A, filt, sysd["x"]) if name == "sa_rigid" else VCycle(A, filt, Ps, **LEVERS[name])
+            pc = (SmoothedAggregation(A, filt, sysd["x"]) if name == "sa_rigid"
+                  else VCycle(A, filt, Ps, masses=sysd["masses"], **LEVERS[name]))
             dv, res = filtered_pcg(A, b, z, filt, pc, tol, 2000, mass=np.repeat(sysd["masses"], 3), compiled=False)
         except (ValueError, np.linalg.LinAlgError, sla.LinAlgError) as e:   # a row, not a crash (NaN in a V-cycle)
             print(f"{label:16s} {sysd['n']:4d}² {name:11s} failed: {type(e).__name__}: {e}", flush=True)

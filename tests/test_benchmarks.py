@@ -178,12 +178,14 @@ def test_solver_choice_small_run_writes_rows(tmp_path):
     contact). The numpy V-cycle (``jacobi``) is the library's plain multigrid written again: the same iterations
     as ``lib_multigrid`` (within one: the compiled products round otherwise)."""
     subprocess.run([sys.executable, str(ROOT / "benchmarks" / "solver_choice.py"), "--sizes", "12", "--systems",
-                    "hanging", "drape", "--levers", "jacobi", "lib_multigrid", "lib_smoothed", "lib_smoothed_identity",
-                    "--out", str(tmp_path)],
+                    "hanging", "drape", "--levers", "jacobi", "weighed_P", "lib_multigrid", "lib_smoothed",
+                    "lib_smoothed_identity", "--out", str(tmp_path)],
                    check=True, capture_output=True, text=True, cwd=ROOT / "benchmarks")
     res = json.loads((tmp_path / "solver_choice.json").read_text())
     rows = [r for r in res["rows"] if r["lever"] == "jacobi"]
     assert len(rows) == 3 and all(r["converged"] and r["true_error"] < 1e-2 for r in rows)
+    weighed = [r for r in res["rows"] if r["lever"] == "weighed_P"]
+    assert len(weighed) == 2 and all(r["converged"] and r["true_error"] < 1e-2 for r in weighed)
     lib = {(r["system"], r["lever"]): r for r in res["rows"] if r["lever"].startswith("lib_")}
     assert len(lib) == 9 and all(r["converged"] and r["true_error"] < 1e-2 and r["ms"] > 0 for r in lib.values())
     for r in rows:
