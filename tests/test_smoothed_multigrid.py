@@ -269,7 +269,7 @@ def test_auto_smooths_large_grid_cloths_only(monkeypatch, tmp_path):
     from implicit_cloth.scene import DEFAULTS
 
     assert DEFAULTS["solver"]["preconditioner"] == "auto" and solvers.AUTO_SMOOTHED_MIN_VERTICES == 128 * 128
-    assert solvers.AUTO_SMOOTHED_CONTACT_MIN_VERTICES == 64 * 64
+    assert solvers.AUTO_SMOOTHED_CONTACT_MIN_VERTICES == 32 * 32
 
     def ran(scene, **kw):
         return ic.Simulator(scene, dt=H, **kw).integrator.precond.name
@@ -279,7 +279,7 @@ def test_auto_smooths_large_grid_cloths_only(monkeypatch, tmp_path):
     assert ran(_scene(res=(12, 12))) == "multigrid_smoothed"
     assert ran(_scene(res=(9, 9))) == "multigrid"
     contact = dict(_scene(res=(12, 12)), obstacles=[{"shape": "sphere", "radius": 0.2, "center": [0, 0, -0.5]}])
-    assert ran(contact) == "multigrid"                                   # 144 < 4096 among obstacles
+    assert ran(contact) == "multigrid"                                   # 144 < 1024 among obstacles
     monkeypatch.setattr(solvers, "AUTO_SMOOTHED_CONTACT_MIN_VERTICES", 144)
     assert ran(contact) == "multigrid_smoothed"
     assert ran(dict(contact, cloth=dict(contact["cloth"], resolution=[11, 11]))) == "multigrid"

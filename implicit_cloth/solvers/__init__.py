@@ -28,8 +28,12 @@ AUTO_SMOOTHED_MIN_VERTICES = 16384
 #: 2.7 s), which were CG breaking down on an indefinite V-cycle (a coarse level's smoother amplifying,
 #: multigrid.SMOOTHER_RHO) and adaptive stepping halving the steps. With each coarse level's damping following
 #: its matrix, the smoothed multigrid takes about half the plain one's CG iterations a solve on the drape and
-#: the drape's run costs less: docs/benchmarks.md, "Coarse smoothers that contract".
-AUTO_SMOOTHED_CONTACT_MIN_VERTICES = 4096
+#: the drape's run costs less: docs/benchmarks.md, "Coarse smoothers that contract". From 32² since 2026-12-07,
+#: when the contacts' constrained directions were weighed by the vertices' masses in its coarse levels: the
+#: shared 32² drape, two simulators alternating in one process, 120 frames, two threads, 17.3-18.2 against
+#: 18.7-20.2 ms a frame on a quiet machine (31.7 against 51.8 CG iterations a frame, 3.61 against 3.21 solves);
+#: docs/benchmarks.md, "The contacts weighed by their masses in the coarse levels".
+AUTO_SMOOTHED_CONTACT_MIN_VERTICES = 1024
 #: ... and of a free grid cloth from this many (64²) when every step is one linear solve (fixed steps, one
 #: linearisation: ``simulation.adaptive.enabled = false``, ``solver.newton_iterations = 1``). With the set-up's
 #: lists read in order (2026-12-06) the smoothed multigrid's 8 CG iterations a step beat the plain one's 15 on the
