@@ -20,7 +20,10 @@ values: no sparse matrix-matrix product per step.
 
 Constraints: the V-cycle preconditions ``S A S + (I - S)``, which is SPD
 whenever A is and leaves constrained components untouched, so the
-Baraff-Witkin filter stays exact. Smoother: one damped block-Jacobi sweep
+Baraff-Witkin filter stays exact. (The smoothed multigrid weighs the
+constrained directions of its finest prolongation by the vertices' masses,
+so that its coarse levels do not take that identity for the cloth's
+stiffness: :meth:`SmoothedProlongation.weigh_constrained`.) Smoother: one damped block-Jacobi sweep
 before and after the coarse correction (symmetric, so the V-cycle is an SPD
 preconditioner, as CG needs). Coarsest level: dense Cholesky, shifted by a
 multiple of the identity when round-off makes the matrix numerically
