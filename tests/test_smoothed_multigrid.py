@@ -262,7 +262,8 @@ def test_chunked_setup_kernels_give_the_serial_kernels_numbers():
 
 def test_auto_smooths_large_grid_cloths_only(monkeypatch, tmp_path):
     """``solver.preconditioner = "auto"`` (the default) runs the smoothed multigrid for a grid cloth from
-    AUTO_SMOOTHED_MIN_VERTICES vertices, from AUTO_SMOOTHED_CONTACT_MIN_VERTICES among obstacles, from
+    AUTO_SMOOTHED_MIN_VERTICES vertices, from AUTO_SMOOTHED_CONTACT_MIN_VERTICES among obstacles (a mesh cloth
+    there too), from
     AUTO_SMOOTHED_LINEAR_MIN_VERTICES when every step is one linear solve, never with self-collision, the plain
     one otherwise (smaller, a mesh cloth, or named explicitly); the report names the one that ran."""
     import implicit_cloth.solvers as solvers
@@ -287,6 +288,9 @@ def test_auto_smooths_large_grid_cloths_only(monkeypatch, tmp_path):
     assert ran(selfc) == "multigrid"
     assert ran(_scene(res=(12, 12)), solver={"preconditioner": "multigrid"}) == "multigrid"
     assert ran(_scene(mesh=_mesh_file(tmp_path))) == "multigrid"          # 400 vertices, not a grid
+    mesh_contact = dict(_scene(mesh=_mesh_file(tmp_path)), obstacles=contact["obstacles"])
+    assert ran(mesh_contact) == "multigrid_smoothed"                      # a mesh among obstacles: 400 >= 144
+    assert ran(dict(mesh_contact, collision={"self_collision": True})) == "multigrid"
     r = ic.Simulator(_scene(res=(12, 12)), dt=H).run(duration=0.05)
     assert r.report["solver"]["preconditioner"] == "multigrid_smoothed"
     # every step one linear solve (fixed steps, one linearisation): from AUTO_SMOOTHED_LINEAR_MIN_VERTICES
