@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import trimesh
 
@@ -52,13 +53,19 @@ def _system(sim, steps=8):
 
 
 def _direct(A, b, z, filt):
-    """Exact solution with (I-S) dv = (I-S) z, for filters made of fixed vertices and axis-aligned constraints."""
+    """Exact solution with (I-S) dv = (I-S) z, for any filter (fixed vertices, constraints along any
+    directions): ``dv = zc + T y`` with ``(T^T A T) y = T^T (b - A zc)``, ``zc = (I - S) z`` and ``T``'s columns
+    each vertex's eigenvectors of ``S_i`` with eigenvalue 1 (the filter's range)."""
     S = filt.matrices()
+    n = len(S)
     zc = z - np.einsum("nij,nj->ni", S, z.reshape(-1, 3)).ravel()
-    free = np.einsum("nii->ni", S).ravel() > 0.5      # diagonal filters only in these tests
-    dv = zc.copy()
-    dv[free] = spla.spsolve(A[free][:, free].tocsc(), (b - A @ zc)[free])
-    return dv
+    w, V = np.linalg.eigh(S)
+    keep = (w > 0.5).ravel()
+    cols = V.transpose(0, 2, 1).reshape(-1, 3)[keep]                # the kept eigenvectors, one a row
+    rows = np.broadcast_to(np.arange(3 * n).reshape(-1, 1, 3), (n, 3, 3)).reshape(-1, 3)[keep]
+    T = sp.csr_array((cols.ravel(), (rows.ravel(), np.repeat(np.arange(len(cols)), 3))), shape=(3 * n, len(cols)))
+    y = spla.spsolve(sp.csc_matrix(T.T @ A @ T), T.T @ (b - A @ zc))
+    return zc + T @ y
 
 
 def _constraints(m, b, seed):
