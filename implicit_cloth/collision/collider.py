@@ -179,7 +179,7 @@ class Collider:
         cons, new = pins, state
         switched = np.zeros(self.ctx.n, dtype=bool)
         released = np.zeros(self.ctx.n, dtype=bool)
-        balance = 0.0
+        balance: Callable[[], float] | None = None      # the last round's (StepInfo.balance_of)
         extra = len(pins.pinned) > len(self.model.pinned)     # vertices prescribed for this step (self-collision)
         # self-collision's re-solve of a Newton redo: the contact rounds linear, its Newton iterations once, last
         redo_newton = newton - 1 if extra and newton is not None and newton > 1 else None
@@ -213,7 +213,7 @@ class Collider:
                 # the new contacts' friction was solved in this step at its first solve's normal forces: no
                 # second solve for it
                 switched[cons.contact[cons.pending > 0.0]] = True
-            balance = si.balance
+            balance = si.balance_of
             info.rounds = rnd + 1
             if not (np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v))):
                 break
@@ -233,7 +233,7 @@ class Collider:
         if redo_newton is not None:
             active = active.take(~np.isin(active.idx, pins.pinned))
         elif len(active) and not extra and (newton is None or newton <= 1) and self.ctx.newton > 1 \
-                and balance > BALANCE:
+                and balance is not None and balance() > BALANCE:
             iterations = self.ctx.newton - 1
         if iterations is not None and np.all(np.isfinite(new.v)):
             new, cons, t = self._refine(integrator, state, h, pins, active, new, total, iterations)

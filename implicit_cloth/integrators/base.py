@@ -15,7 +15,7 @@ integrator and its caller.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -64,9 +64,10 @@ class StepInfo:
     solves: int = 0
     #: Newton iterations of the step (implicit methods; 1 = one linearisation, BW98)
     newton_iterations: int = 0
-    #: rms over the free vertices (neither pinned nor in contact) of the step's nonlinear residual as an
-    #: acceleration, ``|M (v1 - v_hat) - c_v F(x1, v1)| / (c_v m)``, m/s², when a linear step had contacts
-    balance: float = 0.0
+    #: what :attr:`balance` evaluates (None: 0), set by a linear step with contacts: the force evaluation is made
+    #: only where it is read (the collider reads its last round's; on the shared 64² drape's landing 1.2 of
+    #: the 4.9 a frame the steps set)
+    balance_of: Callable[[], float] | None = field(default=None, repr=False)
     #: linear solves and CG iterations of the attempts adaptive stepping discarded (redone with Newton iterations
     #: or a smaller step; booked by :meth:`StepController.advance <implicit_cloth.adaptive.StepController.advance>`),
     #: which ``solves`` and ``iterations`` leave out
@@ -82,6 +83,13 @@ class StepInfo:
     #: the pins' work on the cloth through self-contact in the step (self-collision's :attr:`SelfInfo.work
     #: <implicit_cloth.selfcontact.SelfInfo.work>`), J; booked in the energy balance like the pins' own
     self_work: float = 0.0
+
+    @property
+    def balance(self) -> float:
+        """rms over the free vertices (neither pinned nor in contact) of the step's nonlinear residual as an
+        acceleration, ``|M (v1 - v_hat) - c_v F(x1, v1)| / (c_v m)``, m/s², when a linear step had contacts
+        (else 0); one force evaluation each time it is read (:attr:`balance_of`)."""
+        return 0.0 if self.balance_of is None else self.balance_of()
 
     @property
     def external_work(self) -> float:
@@ -303,7 +311,7 @@ class ImplicitIntegrator(Integrator):
         x1 = scheme.x_pred + scheme.beta * v1
         if c.n_contacts:   # A dv - b = c_v F_c: the constraint force F_c over the step h is the impulse
             info.constraint_impulse = (A @ dv.reshape(-1) - b.reshape(-1)).reshape(-1, 3) * (h / scheme.c_v)
-            info.balance = self._balance(scheme, c, x1, v1, state.t + h)
+            info.balance_of = self._balance_of(scheme, c, x1, v1, state.t + h)
         if nonlinear and iters > 1 and redone is not None and info.constraint_impulse is not None \
                 and redone(info.constraint_impulse):
             return self._finish(x1, v1, state.t + h), info     # solved again by the caller: no friction iterations
@@ -324,7 +332,7 @@ class ImplicitIntegrator(Integrator):
                     x1 = scheme.x_pred + scheme.beta * v1
                     _, A, b = self._system(state, h, c_met, info)    # the law's linearisation at v1: exact there
                     info.constraint_impulse = (A @ dv.reshape(-1) - b.reshape(-1)).reshape(-1, 3) * (h / scheme.c_v)
-                    info.balance = self._balance(scheme, c, x1, v1, state.t + h)
+                    info.balance_of = self._balance_of(scheme, c, x1, v1, state.t + h)
                     info.newton_iterations += newton_its
         return self._finish(x1, v1, state.t + h), info
 
@@ -403,6 +411,13 @@ class ImplicitIntegrator(Integrator):
         if met:                                         # the law met, the last correction's error above tol
             return dv, c.relinearized(v0 + dv), iterations
         return None
+
+    def _balance_of(self, scheme: Scheme, c: Constraints, x1: np.ndarray, v1: np.ndarray,
+                    t1: float) -> Callable[[], float]:
+        """:meth:`_balance` of the end state ``x1``, ``v1`` as they are now (copied: the step's :meth:`_finish`
+        puts the pinned vertices on their paths in place), evaluated when called."""
+        x1, v1 = x1.copy(), v1.copy()
+        return lambda: self._balance(scheme, c, x1, v1, t1)
 
     def _balance(self, scheme: Scheme, c: Constraints, x1: np.ndarray, v1: np.ndarray, t1: float) -> float:
         """:attr:`StepInfo.balance` of the end state ``x1``, ``v1`` (one force evaluation)."""
