@@ -228,3 +228,19 @@ def test_threads_layer_quick(tmp_path):
         assert r["layer"] in ("tbb", "omp", "omp-spin", "workqueue") and r["ms_1"] > 0 and r["ms_2"] > 0
         assert r["same_numbers"]                     # two threads give one thread's positions to the last bit
     assert (tmp_path / "threads_layer.md").read_text().count("\n| ") == 1 + len(res["rows"])      # header, rows
+
+
+def test_drape_phases_quick(tmp_path):
+    """``benchmarks/drape_phases.py --quick``: the 16² drape's frames split into the fall and the landing, each
+    frame's figures the simulator's own (solves at least its collider's rounds, one round a frame in the fall)."""
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "drape_phases.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True, cwd=ROOT / "benchmarks")
+    res = json.loads((tmp_path / "drape_phases_quick.json").read_text())
+    assert res["benchmark"] == "drape_phases" and res["quick"] is True
+    (r,) = res["rows"]
+    frames, ph = r["frames"], r["phases"]
+    assert len(frames) == 39 and all(f["solves"] >= f["rounds"] >= 1 for f in frames)
+    assert ph["fall"]["frames"] > 0 and ph["landing"]["frames"] > 0
+    assert sum(p["frames"] for p in ph.values()) == 39
+    assert ph["fall"]["rounds"] == 1.0 and ph["landing"]["solves"] > ph["fall"]["solves"]
+    assert (tmp_path / "drape_phases_quick.md").read_text().count("\n| 16² |") == 4
