@@ -147,6 +147,45 @@ def test_normal_is_the_gradient_and_closest_point_is_on_the_surface(shape):
     assert np.allclose(np.linalg.norm(p - c, axis=1), np.abs(phi), atol=1e-9)
 
 
+@pytest.mark.parametrize("shape", [shapes.Sphere(0.3), shapes.Capsule(0.15, 0.5), shapes.Cone(0.25, 0.4)])
+def test_edge_detection_skips_by_exact_distance_to_the_same_planes(shape):
+    """The curved shapes' signed distances are exact (1-Lipschitz: checked on pairs of points), so contact
+    detection's edge test skips the edges whose nearer end is farther than the thickness plus half the edge:
+    the planes it finds are those of the bounding-box test, bit for bit, on cloth edges of every length
+    around the shape, within and beyond the thickness."""
+    from implicit_cloth.collision import contacts
+
+    assert shape.exact_distance
+    rng = np.random.default_rng(3)
+    a = rng.uniform(-0.6, 0.6, (4000, 3))
+    b = a + rng.normal(0.0, 0.05, (4000, 3))
+    gap = np.abs(shape.distance(a) - shape.distance(b))
+    assert np.all(gap <= np.linalg.norm(a - b, axis=1) * (1 + 1e-12) + 1e-15)
+    # edges whose points lie near the surface: points on it pushed out by up to 2 thicknesses, edges of
+    # 1-120 mm around them, half of them tangent there (their middles nearer than their ends)
+    th = 0.005
+    _, n, c = shape.closest(rng.uniform(-0.6, 0.6, (3000, 3)))
+    mid = c + n * rng.uniform(-0.2 * th, 2 * th, (3000, 1))
+    half = rng.normal(0.0, 1.0, (3000, 3))
+    half[:1500] -= np.einsum("ij,ij->i", half[:1500], n[:1500])[:, None] * n[:1500]   # tangent: sagging
+    half *= (rng.uniform(0.0005, 0.06, 3000) / np.linalg.norm(half, axis=1))[:, None]
+    x = np.concatenate([mid - half, mid + half])
+    edges = np.column_stack([np.arange(3000), np.arange(3000) + 3000])
+    for reach in (0.0, 0.25 * th):
+        frame = contacts.Frame(x, x, 0.0, 0.0, th, edges, np.zeros((0, 3), dtype=np.int64),
+                               np.ones(len(x), dtype=bool), reach=reach)
+        fast = contacts._edge_interiors(frame, 0, shape, x)
+
+        class Boxed(type(shape)):                # the same shape without the exact-distance test
+            exact_distance = False
+        boxed = Boxed.__new__(Boxed)
+        boxed.__dict__.update(shape.__dict__)
+        ref = contacts._edge_interiors(frame, 0, boxed, x)
+        assert len(ref.idx) > 100
+        for name in ("idx", "ob", "n", "off", "point", "kind", "viol"):
+            assert np.array_equal(getattr(fast, name), getattr(ref, name)), name
+
+
 # --------------------------------------------------------------------------- sweeps and time of impact
 def test_sweep_closed_forms_plane_sphere_cone_tip():
     r = TH

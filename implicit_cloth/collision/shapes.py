@@ -256,6 +256,9 @@ class Shape:
     #: Whether the surface away from its sharp features is flat (box, plane): a straight cloth edge whose
     #: ends are outside then comes nearer only at a feature (tested as such), never between them.
     flat = False
+    #: Whether :meth:`distance` is the exact Euclidean signed distance, so 1-Lipschitz: a point within ``d`` of
+    #: another is at most ``d`` nearer the surface (contact detection's edge test skips the edges it rules out).
+    exact_distance = False
 
     def segment_minimum(self, a0: np.ndarray, a1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Parameter ``a`` (K,) and value (K,) m of the smallest signed distance along segments ``a0 -> a1``.
@@ -302,6 +305,7 @@ class Shape:
 
 class Sphere(Shape):
     name = "sphere"
+    exact_distance = True
 
     def __init__(self, radius: float) -> None:
         self.radius = float(radius)
@@ -413,6 +417,7 @@ class Capsule(Shape):
     """Points within ``radius`` of the segment from ``-height/2`` to ``+height/2`` on the local z axis."""
 
     name = "capsule"
+    exact_distance = True
 
     def __init__(self, radius: float, height: float) -> None:
         self.radius, self.height = float(radius), float(height)
@@ -449,6 +454,7 @@ class Cone(Shape):
     """
 
     name = "cone"
+    exact_distance = True     # (the cross-section's, exact for a solid of revolution)
 
     def __init__(self, radius: float, height: float) -> None:
         self.radius, self.height = float(radius), float(height)
