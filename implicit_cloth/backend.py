@@ -139,6 +139,21 @@ def set_numba_threads() -> None:
     set_num_threads(max(1, min(threads(), pool)))
 
 
+@contextmanager
+def one_numba_thread() -> Iterator[None]:
+    """Numba's parallel regions on one thread for the duration of a ``with`` block (the count before restored
+    after it): a kernel compiled as a parallel region for its speed on one thread (numba's parallel lowering
+    vectorises loops its serial lowering does not), on a cloth below :func:`thread_min_vertices`."""
+    from numba import get_num_threads, set_num_threads
+
+    before = get_num_threads()
+    set_num_threads(1)
+    try:
+        yield
+    finally:
+        set_num_threads(before)
+
+
 def resolve(name: str | None = None) -> str:
     """``"numba"`` or ``"numpy"`` for a requested accelerator (``None``: the default).
 

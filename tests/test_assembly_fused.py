@@ -329,6 +329,43 @@ def test_numba_spring_force_equals_numpy_path(tmp_path, kind, damping):
         assert not np.array_equal(got, start)
 
 
+def test_spring_force_kernels_agree_at_every_thread_count():
+    """``Springs.force`` runs the springs' force as a compiled parallel region at every size (on one thread below
+    the threaded size, numba's parallel lowering being the faster there too): the serial kernel's numbers to the
+    last bit, on one thread and on two, and numba's thread count restored after the one-thread block."""
+    from numba import get_num_threads, set_num_threads
+
+    from implicit_cloth.backend import one_numba_thread
+    from implicit_cloth.kernels.springs import pspring_forces, spring_forces
+
+    set_default_accelerator("numba")
+    sim = ic.Simulator(_grid_scene(True))
+    sp = sim.model.springs
+    rng = np.random.default_rng(11)
+    x = sim.positions + 0.01 * rng.standard_normal((sp.n, 3))
+    v = rng.standard_normal((sp.n, 3))
+    B = sp._B
+    outs = []
+    for kernel, threads in ((spring_forces, None), (pspring_forces, 1), (pspring_forces, 2)):
+        out = np.zeros((sp.n, 3))
+        args = (x, v, *sp._plain, float(sp._tiny), sp._damped, B.indptr, B.indices, B.data, sp._F.copy(), out)
+        if threads == 1:
+            set_num_threads(min(2, get_num_threads()))
+            before = get_num_threads()
+            with one_numba_thread():
+                assert get_num_threads() == 1
+                kernel(*args)
+            assert get_num_threads() == before
+        else:
+            kernel(*args)
+        outs.append(out)
+    assert np.any(outs[0] != 0.0)
+    assert np.array_equal(outs[0], outs[1]) and np.array_equal(outs[0], outs[2])
+    got = np.zeros((sp.n, 3))
+    sp.force(x, v, 0.0, got)
+    assert np.array_equal(got, outs[0])
+
+
 def test_block_product_gives_the_csr_products_numbers():
     """After a lazy finalize the compiled path multiplies from the blocks (no CSR copy): on an assembled cloth
     system (13 blocks a row inside) the same numbers as scipy's CSR product, to the last bit."""

@@ -120,14 +120,22 @@ class Springs:
     def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
         if self.backend.compiled and out.dtype == np.float64 and out.flags.c_contiguous:
             # one compiled pass with numpy's arithmetic: the same numbers (the line searches and energy checks
-            # evaluate forces many times a step)
-            from ..kernels.springs import pspring_forces, spring_forces
+            # evaluate forces many times a step). Always the kernel compiled as a parallel region, on one thread
+            # below the threaded size: numba's parallel lowering vectorises its loop over the springs (square
+            # roots and divisions four at a time), which the serial kernel's does not: 0.19 -> 0.06 / 0.76 ->
+            # 0.25 / 3.2 -> 1.0 ms at 32² / 64² / 128² on one thread, the same numbers
+            from ..backend import one_numba_thread
+            from ..kernels.springs import pspring_forces
 
             c = np.ascontiguousarray
             B = self._B
-            (pspring_forces if self.backend.threaded(self.n) else spring_forces)(
-                c(x, dtype=float), c(v, dtype=float), *self._plain, float(self._tiny), self._damped,
-                B.indptr, B.indices, B.data, self._F, out)
+            args = (c(x, dtype=float), c(v, dtype=float), *self._plain, float(self._tiny), self._damped,
+                    B.indptr, B.indices, B.data, self._F, out)
+            if self.backend.threaded(self.n):
+                pspring_forces(*args)
+            else:
+                with one_numba_thread():
+                    pspring_forces(*args)
             return
         out += self._B @ self.spring_forces(x, v)
 
