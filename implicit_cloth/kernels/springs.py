@@ -34,6 +34,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from . import layer  # noqa: F401  (the threading layer chosen before any region runs: the springs' force is one at every size)
+
 
 @njit(cache=True, inline="always")
 def spring_vector(x, i, j):
