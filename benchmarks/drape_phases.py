@@ -14,7 +14,8 @@ Per phase: ms a frame (mean), its split into the multigrid's set-up, the PCG sol
 contact detection, the collider, the step control), the linear solves, the collider's rounds and the CG
 iterations a frame. A contact step solves its rounds (solve, detect, release the contacts that pull, again),
 then the friction's Newton corrections and the balance-driven refinement (``collision.newton_iterations``):
-``solves - rounds`` counts those last two. Never asserts a time.
+``solves - rounds`` counts those last two. Solves and iterations include the attempts the step control discarded
+(what the frames cost). Never asserts a time.
 
 Usage::
 
