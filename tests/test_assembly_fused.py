@@ -7,6 +7,7 @@ round-off of a different summation order, on a grid and on an irregular mesh
 cloth, with compressed, stretched and zero-length springs, damping on and off.
 """
 
+import os
 import subprocess
 import sys
 
@@ -364,6 +365,31 @@ def test_spring_force_kernels_agree_at_every_thread_count():
     got = np.zeros((sp.n, 3))
     sp.force(x, v, 0.0, got)
     assert np.array_equal(got, outs[0])
+
+
+def test_a_forked_child_simulates_after_a_one_thread_run():
+    """Every compiled run opens numba parallel regions on one thread (the springs' force, the multigrid's
+    threading-layer check), and GNU OpenMP is not fork-safe once it has run regions on several threads: a program
+    that forks workers after a one-thread run keeps working, the child's numbers the parent's (the batch runner
+    spawns its workers whatever the thread count)."""
+    code = (
+        "import multiprocessing as mp, numpy as np, implicit_cloth as ic\n"
+        "from implicit_cloth.kernels import layer\n"
+        "def run(_):\n"
+        "    sim = ic.Simulator(SCENE); sim.step(3); return float(np.abs(sim.positions).sum())\n"
+        "SCENE = {'simulation': {'dt': 0.01}, 'cloth': {'size': [1.0, 1.0], 'resolution': [12, 12], 'mass': 0.1,\n"
+        "         'pins': ['top_left', 'top_right'], 'springs': {'structural': {'stiffness': 1000.0}}},\n"
+        "         'effects': {'gravity': [0.0, 0.0, -9.81]}}\n"
+        "if __name__ == '__main__':\n"
+        "    here = run(0)\n"
+        "    assert layer.current() is not None\n"
+        "    with mp.get_context('fork').Pool(1) as pool:\n"
+        "        there = pool.map(run, [0])[0]\n"
+        "    assert here == there\n"
+        "    print('ok')\n")
+    env = dict(os.environ, IMPLICIT_CLOTH_ACCELERATOR="numba", IMPLICIT_CLOTH_THREADS="1")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0 and out.stdout.split() == ["ok"], out.stderr[-2000:]
 
 
 def test_block_product_gives_the_csr_products_numbers():
