@@ -19,7 +19,8 @@ sweeps), ``W`` (a W-cycle), ``chebyshev2`` / ``chebyshev3`` (a Chebyshev polynom
 2 / 3 on ``[lmax / 30, lmax]``, ``lmax`` 1.1 times a 15-step power estimate per level), ``filtered_P``
 (coarse spaces in the free directions: prolongation ``S P``, coarse matrices ``P^T S A S P``), ``weighed_P``
 (the constrained directions of the prolongation's rows weighed by ``sqrt(m)``: ``(S + sqrt(m) (I - S)) P``, as
-the library's smoothed multigrid does since 2026-12-07, here on the plain bilinear hierarchy), ``sa_rigid``
+the library's smoothed multigrid does since 2026-12-07, here on the plain bilinear hierarchy and at every
+constrained vertex, pins too, where the library weighs the partially constrained ones only), ``sa_rigid``
 (not this hierarchy: pyamg's smoothed aggregation with the six rigid motions at the step's positions as the
 near-null space, interpolation that follows the cloth's shape; its setup is rebuilt per system). The true
 error is against a sparse direct solve of the filtered system. Cost: fine-level matrix passes per CG
