@@ -347,19 +347,23 @@ def test_spring_force_kernels_agree_at_every_thread_count():
     v = rng.standard_normal((sp.n, 3))
     B = sp._B
     outs = []
-    for kernel, threads in ((spring_forces, None), (pspring_forces, 1), (pspring_forces, 2)):
-        out = np.zeros((sp.n, 3))
-        args = (x, v, *sp._plain, float(sp._tiny), sp._damped, B.indptr, B.indices, B.data, sp._F.copy(), out)
-        if threads == 1:
-            set_num_threads(min(2, get_num_threads()))
-            before = get_num_threads()
-            with one_numba_thread():
-                assert get_num_threads() == 1
+    original = get_num_threads()
+    try:
+        for kernel, threads in ((spring_forces, None), (pspring_forces, 1), (pspring_forces, 2)):
+            out = np.zeros((sp.n, 3))
+            args = (x, v, *sp._plain, float(sp._tiny), sp._damped, B.indptr, B.indices, B.data, sp._F.copy(), out)
+            if threads == 1:
+                set_num_threads(min(2, original))
+                before = get_num_threads()
+                with one_numba_thread():
+                    assert get_num_threads() == 1
+                    kernel(*args)
+                assert get_num_threads() == before
+            else:
                 kernel(*args)
-            assert get_num_threads() == before
-        else:
-            kernel(*args)
-        outs.append(out)
+            outs.append(out)
+    finally:
+        set_num_threads(original)      # the process's count as the test found it
     assert np.any(outs[0] != 0.0)
     assert np.array_equal(outs[0], outs[1]) and np.array_equal(outs[0], outs[2])
     got = np.zeros((sp.n, 3))
