@@ -26,8 +26,8 @@ further halvings for the explicit methods only (so that each stable explicit
 method has at least two points). The implicit methods (backward Euler, BDF2)
 run every step >= ``--implicit-min-dt`` (1/480 s; below it their cost per
 simulated second only grows) at every solver tolerance of ``--tolerances``
-(1e-1 ... 1e-6: the relative error of each step's dv the PCG stops at, see the
-README's "Filtered PCG"), default multigrid preconditioner, max_iterations 1000.
+(1e-1 ... 1e-6: the relative error of each step's dv the PCG stops at, see
+docs/scene.md, "Filtered PCG"), default multigrid preconditioner, max_iterations 1000.
 Explicit methods run every step of the ladder; above their stability limit they
 diverge, and a diverged run is recorded as such (status, reason, step reached)
 with no error figure. A run that finishes inside the library's divergence

@@ -201,7 +201,7 @@ class CollisionReport(Record):
 
 @dataclass
 class Frames(Record):
-    """One list per quantity, one entry per kept frame (see the README's "Report")."""
+    """One list per quantity, one entry per kept frame (see "Report" in docs/scene.md)."""
 
     OPTIONAL_KEYS: ClassVar[frozenset[str]] = frozenset({"t_collision"})
 

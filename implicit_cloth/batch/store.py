@@ -39,8 +39,8 @@ def health(report: RunReport) -> dict[str, Any]:
     """Health figures of a run report (the summary's last columns).
 
     ``energy_drift`` = E_total(end) - E_total(0) - W_pins(end), J, and
-    ``energy_drift_rel`` the same divided by the run's energy scale (see the
-    README's "Divergence"); ``max_strain`` the largest over kept frames;
+    ``energy_drift_rel`` the same divided by the run's energy scale (see
+    docs/scene.md, "Divergence"); ``max_strain`` the largest over kept frames;
     solver figures for implicit methods (empty otherwise);
     ``max_penetration`` (m) from the collision report, 0 without obstacles;
     ``health``: the criteria the run warned about (``energy strain``; empty when ok).
