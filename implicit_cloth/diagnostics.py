@@ -135,8 +135,8 @@ class StepMeasures:
                 return measured
         m = self.model
         kin = m.kinetic_energy(s.v)
-        grav = float(sum(e.potential(s.x) for e in self._fields))
-        spring = float(sum(e.potential(s.x) for e in self._elastic))
+        grav = float(sum(e.energy(s.x) for e in self._fields))
+        spring = float(sum(e.energy(s.x) for e in self._elastic))
         strain = None
         sp = m.springs
         if sp is not None and len(sp.i):      # spring energy and strains from one evaluation of the lengths

@@ -161,7 +161,7 @@ class Model:
 
     def potential_energy(self, x: np.ndarray) -> dict[str, float]:
         """Potential energy of each conservative effect, J."""
-        return {e.name: e.potential(x) for e in self.effects if e.conservative}
+        return {e.name: e.energy(x) for e in self.effects if e.conservative}
 
     def kinetic_energy(self, v: np.ndarray) -> float:
         """``sum_i m_i |v_i|^2 / 2``, J."""

@@ -18,7 +18,7 @@ PKG = Path(__file__).resolve().parents[1] / "implicit_cloth"
 #: A prefix ending in "*" stands for a package and everything in it.
 LAYERS: list[tuple[str, ...]] = [
     ("errors", "materials", "kernels*", "interrupt", "rowwise"),
-    ("config*", "report", "backend"),
+    ("config*", "report", "backend", "forces"),
     ("files", "geometry", "obstacles", "objfile", "cloth"),
     ("scene",),
     ("assembly", "solvers*", "effects*"),

@@ -3,7 +3,8 @@
 ``f_i = -c A_i (v_i - w(x_i, t))`` with ``c`` the drag coefficient per unit
 area (N*s/m^3) and ``A_i`` the vertex's lumped area (m^2), so that refining
 the mesh does not change the total drag. Jacobian: ``dF/dv = -c A_i I`` on the
-diagonal (the wind being independent of v); ``dF/dx = 0`` for a uniform wind.
+diagonal (the wind being independent of v); ``dF/dx = 0`` for a uniform wind. A dissipative
+:class:`~implicit_cloth.forces.Force`: ``F = -dD/dv`` with ``D = sum_i c A_i |v_i - w|^2 / 2``.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ class Drag:
 
     name = "drag"
     conservative = False
+    dissipative = True
     elastic = False
 
     def __init__(self, areas: np.ndarray, c: float, wind: Any = None) -> None:
@@ -36,8 +38,16 @@ class Drag:
         rel = v if self.wind is None else v - self.wind.velocity(x, t)
         out -= self._cA * rel
 
-    def potential(self, x: np.ndarray) -> float:
+    def energy(self, x: np.ndarray) -> float:
         return 0.0
+
+    def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
+        pass
+
+    def dissipation(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        """``sum_i c A_i |v_i - w|^2 / 2``, W (its ``-dD/dv`` is the drag)."""
+        rel = v if self.wind is None else v - self.wind.velocity(x, t)
+        return 0.5 * float(np.einsum("i,ij,ij->", self._cA[:, 0], rel, rel))
 
     def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
         """The wind's power on the cloth through the drag, ``sum_i c A_i w . v_i`` (0 without wind), W."""

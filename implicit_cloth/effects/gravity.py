@@ -19,6 +19,7 @@ class Gravity:
 
     name = "gravity"
     conservative = True
+    dissipative = False
     elastic = False
 
     def __init__(self, masses: np.ndarray, g) -> None:
@@ -28,8 +29,14 @@ class Gravity:
     def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
         out += self._mg
 
-    def potential(self, x: np.ndarray) -> float:
+    def energy(self, x: np.ndarray) -> float:
         return -float(np.einsum("ij,ij->", self._mg, x))
+
+    def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
+        out -= self._mg
+
+    def dissipation(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        return 0.0
 
     def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
         return 0.0   # its work is the change of its potential

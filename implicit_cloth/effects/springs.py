@@ -8,6 +8,9 @@ Force on i (the force on j is its negative)::
 
     f_i = k (l - L0) u + kd ((v_j - v_i) . u) u
 
+A :class:`~implicit_cloth.forces.Force` with both parts: the elastic energy
+``U = sum_s k (l - L0)^2 / 2`` and Rayleigh's dissipation ``D = sum_s kd ((v_j - v_i) . u)^2 / 2``.
+
 Jacobian blocks (``df_i/dx_j = K``, ``df_i/dx_i = -K``, likewise for v)::
 
     K = k [u u^T + c (I - u u^T)],   c = 1 - L0/l       (exact)
@@ -67,6 +70,8 @@ class Springs:
         self.kd = np.asarray(damping, dtype=float)
         self.L0 = np.asarray(rest_length, dtype=float)
         self.kinds = dict(kinds)
+        #: whether the springs damp (a dissipation potential beside the elastic energy)
+        self.dissipative = bool(np.any(self.kd))
         s = len(self.i)
         positive = self.L0[self.L0 > 0]
         self._tiny = 1e-9 * (positive.mean() if positive.size else 1.0)
@@ -142,9 +147,24 @@ class Springs:
     def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
         return 0.0   # internal: its work is the change of its potential
 
-    def potential(self, x: np.ndarray) -> float:
+    def energy(self, x: np.ndarray) -> float:
         """Elastic energy ``sum_s k (l - L0)^2 / 2``, J."""
         return 0.5 * float(np.dot(self.k, (self.lengths(x) - self.L0) ** 2))
+
+    def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
+        """Add ``dU/dx``, the negative of the elastic force (the force at rest velocities), N."""
+        f = np.zeros_like(out)
+        self.force(x, np.zeros_like(x), t, f)
+        out -= f
+
+    def dissipation(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        """Rayleigh's ``sum_s kd ((v_j - v_i) . u)^2 / 2`` at the geometry ``x``, W (its ``-dD/dv`` is the
+        damping force)."""
+        if not self.dissipative:
+            return 0.0
+        d, l, u, ok, inv = self._frame(x)
+        s = np.einsum("ij,ij->i", v[self.j] - v[self.i], u)
+        return 0.5 * float(np.dot(self.kd, s * s))
 
     def pairs(self) -> np.ndarray:
         return np.stack([self.i, self.j], axis=1)

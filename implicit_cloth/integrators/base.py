@@ -20,6 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .. import forces
 from ..constraints import Constraints
 from ..model import Model, State
 from ..solvers import Filter, filtered_pcg, make_preconditioner
@@ -448,18 +449,11 @@ class ImplicitIntegrator(Integrator):
             f[c.contact] += c.damping_force(v)
 
     def _conservative(self, x: np.ndarray, t: float) -> tuple[float, np.ndarray]:
-        """Potential energy (J) and conservative force (N) of gravity and the springs' elasticity at ``x``."""
-        f = np.zeros_like(x)
-        zero = np.zeros_like(x)
-        u = 0.0
-        for e in self.model.effects:
-            if e.name in ("gravity", "springs"):
-                e.force(x, zero, t, f)
-                u += e.potential(x)
-        return u, f
+        """Potential energy (J) and conservative force (N) of the model's conservative forces at ``x``."""
+        return forces.conservative(self.model.effects, x, t)
 
     def _potential(self, x: np.ndarray) -> float:
-        return float(sum(self.model.potential_energy(x).values()))
+        return forces.energy(self.model.effects, x)
 
     def _newton(self, state: State, h: float, c: Constraints, scheme: Scheme, v: np.ndarray, filt: Filter,
                 iterations: int, info: StepInfo) -> tuple[State, StepInfo]:
@@ -470,14 +464,14 @@ class ImplicitIntegrator(Integrator):
 
             Phi(v) = |v - v_hat|_M^2 / 2 + U(x(v)) + c_v D(v)
 
-        with ``U`` gravity and the springs' elastic energy, and ``D`` the dissipation potential of the forces
+        with ``U`` the model's conservative forces' energy and ``D`` the dissipation potential of the forces
         linear in the velocity (spring damping, drag with its wind) and of the constant ones (kinetic friction),
-        their geometry taken at the current iterate. Each iteration solves ``A_k d = -R(v_k)`` (the same filtered
-        PCG and constraints, constrained components 0: every iterate meets the constraints the first solve met)
-        and backtracks
-        ``v_k + a d`` from ``a = 1`` until ``Phi`` decreases enough (Armijo, ``1e-4``), so no iteration can
-        raise it. Stops when ``|a d| <= tolerance |v - v0|``, after ``iterations``, or when the line search
-        fails (the iterate is kept). Returns the step's state and figures.
+        their geometry taken at the current iterate (:mod:`implicit_cloth.forces`). Each iteration solves
+        ``A_k d = -R(v_k)`` (the same filtered PCG and constraints, constrained components 0: every iterate
+        meets the constraints the first solve met) and backtracks ``v_k + a d`` from ``a = 1`` until ``Phi``
+        decreases enough (Armijo, ``1e-4``), so no iteration can raise it. Stops when ``|a d| <= tolerance
+        |v - v0|``, after ``iterations``, or when the line search fails (the iterate is kept).
+        Returns the step's state and figures.
 
         Smoothed friction solved to convergence (``c.rub`` given: ``collision.friction_newton``) is re-linearised
         at every iterate (:meth:`Constraints.relinearized`, the Huber potential's exact Hessian), its
