@@ -123,6 +123,14 @@ class SystemMatrix:
             raise ValueError("block not in the sparsity pattern")
         return idx
 
+    def has_blocks(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Whether each block ``(i, j)`` is in the pattern, (K,) bool."""
+        q = np.asarray(i, dtype=np.int64) * self.n + np.asarray(j, dtype=np.int64)
+        if not len(self._keys):
+            return np.zeros(len(q), dtype=bool)
+        pos = np.minimum(np.searchsorted(self._keys, q), len(self._keys) - 1)
+        return self._keys[pos] == q
+
     def pair_scatter(self, pairs: np.ndarray) -> sp.csr_array:
         """Scatter operator for symmetric pair blocks.
 

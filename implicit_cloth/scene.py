@@ -65,8 +65,11 @@ CLOTH_KEYS = (
     "size", "resolution", "center", "plane", "mesh", "scale", "translation",
     "mass", "density", "pins", "material", "springs", "velocity",
 )
-COLLISION_KEYS = ("thickness", "restitution", "max_iterations", "newton_iterations", "friction_speed",
+COLLISION_KEYS = ("method", "thickness", "restitution", "max_iterations", "newton_iterations", "friction_speed",
                   "friction_newton", "friction_pause", "self_collision", "self_friction")
+#: ``collision.method``: contacts as constraints found in rounds of solves ("rounds"), or as a barrier energy in
+#: the step's one Newton solve of its incremental potential ("barrier", :mod:`implicit_cloth.contact`)
+COLLISION_METHODS = ("rounds", "barrier")
 #: Coulomb coefficient between layers of cloth when ``self_collision`` is on and ``self_friction`` is not given.
 SELF_FRICTION = 0.3
 COLLISION_DEFAULTS: dict[str, Any] = {"thickness": 0.005, "restitution": 0.0, "max_iterations": 8,
@@ -364,6 +367,8 @@ def _effects(d: Any) -> dict[str, Any]:
 def _collision(d: Any) -> dict[str, Any]:
     check_keys("collision", d, COLLISION_KEYS)
     out = dict(COLLISION_DEFAULTS)
+    if "method" in d:    # in the normalised table only when given, so a scene without it is unchanged
+        out["method"] = choice("collision.method", d["method"], COLLISION_METHODS)
     if "thickness" in d:
         out["thickness"] = number("collision.thickness", d["thickness"], lo=0.0, lo_open=True)
     if "restitution" in d:

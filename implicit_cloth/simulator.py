@@ -17,7 +17,7 @@ from .adaptive import AdaptiveStats, StepController
 from .backend import threads
 from .config.validate import number as _number
 from .constraints import Constraints
-from .errors import DivergenceError, SolverWarning
+from .errors import DivergenceError, SceneError, SolverWarning
 from .files import save_npz
 from .integrators import ImplicitIntegrator, make_integrator
 from .interrupt import deferred_interrupt
@@ -141,7 +141,15 @@ class Simulator:
         #: the last single linearisation without obstacles: (state, h, pins, end velocities), for its retry
         self._linear: tuple[State, float, Constraints, np.ndarray] | None = None
         self.collider: Any = None
-        if scene.data["obstacles"]:   # the collision code is imported only for obstacles
+        #: whether contact is a barrier energy in the step's one Newton solve (``collision.method = "barrier"``)
+        self.barrier = (scene.data["collision"] or {}).get("method", "rounds") == "barrier"
+        if self.barrier:
+            _check_barrier(scene.data, self.integrator.implicit)
+        if scene.data["obstacles"] and self.barrier:
+            from .contact import ObstacleContact
+
+            self.collider = ObstacleContact(scene.data["obstacles"], scene.data["collision"], self.model, self.dt)
+        elif scene.data["obstacles"]:   # the collision code is imported only for obstacles
             from .collision import Collider
 
             self.collider = Collider(scene.data["obstacles"], scene.data["collision"], self.model)
@@ -273,6 +281,8 @@ class Simulator:
         """
         col = self.collider
         pins = self._pins if pins is None else pins
+        if col is not None and self.barrier:
+            return self._barrier_step(state, h, pins)
         if col is not None and self.integrator.implicit:
             return col.step(self.integrator, state, h, pins, self.strain_limiter, newton)
         if isinstance(self.integrator, ImplicitIntegrator):
@@ -284,6 +294,32 @@ class Simulator:
         if col is not None and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
             # last, so that nothing after it moves the cloth into an obstacle; corrects new.x, new.v in place
             info.collision = col.respond(state, new, h)
+        return new, info
+
+    def _barrier_step(self, state: State, h: float, pins: Constraints) -> tuple[State, Any]:
+        """``collision.method = "barrier"``: detect (a :class:`~implicit_cloth.contact.Contacts` value at the
+        step's start), solve (the step's incremental potential with the contact terms, one Newton solve:
+        :meth:`~implicit_cloth.integrators.base.ImplicitIntegrator.minimize`), check (the figures the report and
+        the energy balance read)."""
+        from .collision.context import CollisionInfo
+
+        col = self.collider
+        integ = self.integrator
+        assert isinstance(integ, ImplicitIntegrator)
+        t0 = time.perf_counter()
+        contacts = col.detect(state.x)
+        terms = col.terms(contacts)
+        t_detect = time.perf_counter() - t0
+        new, info = integ.minimize(state, h, terms, pins)
+        t0 = time.perf_counter()
+        barrier = terms[0]
+        if np.all(np.isfinite(new.x)):
+            info.contact_work = barrier.energy(state.x) - barrier.energy(new.x)
+        depth = max((float(col.depths(k, new.x, new.t)[col.free].max(initial=0.0))
+                     for k in range(len(col.obstacles))), default=0.0)
+        info.collision = CollisionInfo(contacts=len(contacts), resting=barrier.active(new.x), rounds=1,
+                                       max_penetration=depth, solves=info.solves,
+                                       t_collision=t_detect + time.perf_counter() - t0)
         return new, info
 
     def _implicit_step(self, state: State, h: float, pins: Constraints, newton: int | None) -> tuple[State, Any]:
@@ -422,6 +458,19 @@ STRAIN_TOLERANCE = 1e-3
 
 #: Report criteria of the run health, in the order they are listed.
 HEALTH_CRITERIA: tuple[str, ...] = ("energy", "strain", "failsafe", "self_collision", "solver")
+
+
+def _check_barrier(data: Mapping[str, Any], implicit: bool) -> None:
+    """What ``collision.method = "barrier"`` does not cover yet: a clear error naming the key."""
+    if not implicit:
+        raise SceneError(f"collision.method: 'barrier' minimises the implicit step's potential; it needs an "
+                         f"implicit integrator (backward_euler, bdf2), got {data['simulation']['integrator']!r}")
+    if self_collision(data):
+        raise SceneError("collision.method: 'barrier' handles obstacles only so far; self_collision needs "
+                         "method = 'rounds', got 'barrier'")
+    if "strain_limit" in data["simulation"]:
+        raise SceneError("collision.method: 'barrier' does not apply simulation.strain_limit; use method = "
+                         "'rounds', got 'barrier'")
 
 
 class Health:

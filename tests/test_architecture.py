@@ -23,7 +23,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("scene",),
     ("assembly", "solvers*", "effects*"),
     ("model", "constraints"),
-    ("integrators*", "collision*", "selfcontact*", "diagnostics", "adaptive", "strain_limit"),
+    ("integrators*", "collision*", "contact*", "selfcontact*", "diagnostics", "adaptive", "strain_limit"),
     ("simulator",),
     ("",),                                   # the package itself: the public API's facade
     ("results", "export*", "renderer", "render", "batch*", "compare"),

@@ -1,0 +1,209 @@
+"""Contact as energy (``collision.method = "barrier"``): the barrier and friction forces' derivatives, and whole
+runs judged from their states by checks written here (an inside test on the obstacle's own geometry, the
+distance of each vertex's straight path between two steps to a rod's axis, the energy from the states).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+from test_forces import check_force
+
+import implicit_cloth as ic
+from implicit_cloth.contact import ObstacleFriction
+from implicit_cloth.contact.obstacles import Contacts
+from implicit_cloth.errors import SceneError
+
+TH = 0.01
+
+
+def _scene(obstacles, n=8, center=(0.0, 0.0, 0.3), velocity=(0.0, 0.0, 0.0), dt=1 / 60, duration=1.0,
+           friction_speed=None, size=0.6):
+    collision = {"method": "barrier", "thickness": TH}
+    if friction_speed is not None:
+        collision["friction_speed"] = friction_speed
+    return {
+        "simulation": {"integrator": "backward_euler", "dt": dt, "duration": duration, "frame_rate": 30},
+        "cloth": {"size": [size, size], "resolution": [n, n], "mass": 0.1, "center": list(center), "plane": "xy",
+                  "velocity": list(velocity),
+                  "springs": {"structural": {"stiffness": 500.0, "damping": 0.05},
+                              "shear": {"stiffness": 50.0, "damping": 0.01},
+                              "bend": {"stiffness": 1.0, "damping": 0.001}}},
+        "effects": {"gravity": [0.0, 0.0, -9.81]},
+        "obstacles": obstacles,
+        "collision": collision,
+    }
+
+
+PLANE = {"shape": "plane", "point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "friction": 0.4}
+SPHERE = {"shape": "sphere", "center": [0.0, 0.0, 0.0], "radius": 0.2, "friction": 0.3}
+
+
+# --------------------------------------------------------------------------- derivatives
+def test_barrier_derivatives_on_a_plane_with_their_order():
+    """Energy, gradient and Hessian blocks of the barrier within its reach of a plane (flat: the Hessian is
+    exact), by the Taylor remainders' orders (2 and 3)."""
+    rng = np.random.default_rng(0)
+    sim = ic.Simulator(_scene([PLANE]))
+    bar = sim.collider.barrier
+    n = sim.model.n
+    x = sim.model.rest_positions.copy()
+    x[:, 2] = TH / 2 + rng.uniform(0.1, 0.9, n) * TH / 2        # every gap within (0, dhat)
+    d = 1e-3 * rng.standard_normal(x.shape)
+    o = check_force(bar, n, x, np.zeros_like(x), 0.0, rng, d)
+    assert o["energy"][-1] == pytest.approx(2.0, abs=0.05)
+    assert o["hessian"][-1] == pytest.approx(3.0, abs=0.1)
+    assert bar.active(x) == n
+
+
+def test_barrier_gradient_on_a_sphere_and_energy_diverges_at_the_offset():
+    rng = np.random.default_rng(1)
+    sim = ic.Simulator(_scene([SPHERE], size=0.1))
+    bar = sim.collider.barrier
+    n = sim.model.n
+    dirs = sim.model.rest_positions + np.array([0.0, 0.0, 0.2])       # a small patch over the sphere's top
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    x = dirs * (0.2 + TH / 2 + rng.uniform(0.1, 0.9, n)[:, None] * TH / 2)
+    o = check_force(bar, n, x, np.zeros_like(x), 0.0, rng, 1e-3 * rng.standard_normal(x.shape))
+    assert o["energy"][-1] == pytest.approx(2.0, abs=0.05)
+    # the force pushes out along the normal; the energy is infinite once a vertex is within the offset
+    f = np.zeros_like(x)
+    bar.force(x, x, 0.0, f)
+    assert np.all(np.einsum("ij,ij->i", f, dirs) > 0)
+    y = x.copy()
+    y[0] = dirs[0] * (0.2 + 0.49 * TH)
+    assert bar.energy(y) == np.inf
+
+
+@pytest.mark.parametrize("speed", [1e-4, 1e-2, 1.0])
+def test_friction_dissipation_and_its_derivatives(speed):
+    """The lagged smoothed friction: force = -dD/dv (order 2), Hessian blocks order 3, in the smoothed range
+    and beyond it; at speeds far above eps it is Coulomb's mu lambda against the sliding direction."""
+    rng = np.random.default_rng(2)
+    n = 6
+    normals = rng.standard_normal((n, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    c = Contacts(np.arange(n), np.zeros(n, dtype=int), normals, rng.uniform(0.5, 2.0, n), np.full(n, 0.3))
+    fr = ObstacleFriction(c, eps=1e-2)
+    v = speed * rng.standard_normal((n, 3))
+    o = check_force(fr, n, np.zeros((n, 3)), v, 0.0, rng, 0.1 * max(speed, 1e-2) * rng.standard_normal((n, 3)))
+    assert o["dissipation"][-1] == pytest.approx(2.0, abs=0.1)
+    if "dissipation_hessian" in o:    # (its smallest steps reach round-off: the order read at the second)
+        assert o["dissipation_hessian"][1] == pytest.approx(3.0, abs=0.15)
+    f = np.zeros((n, 3))
+    fr.force(None, v, 0.0, f)
+    assert np.allclose(np.einsum("ij,ij->i", f, normals), 0.0, atol=1e-12)        # tangential only
+    if speed == 1.0:
+        vt = v - np.einsum("ij,ij->i", v, normals)[:, None] * normals
+        coulomb = -0.3 * c.force[:, None] * vt / np.linalg.norm(vt, axis=1)[:, None]
+        assert np.allclose(f, coulomb, rtol=1e-12)
+
+
+# --------------------------------------------------------------------------- runs, judged from the states
+def _energy(model, s):
+    """Kinetic + gravity + spring energy, computed here from the state."""
+    ke = 0.5 * float(np.sum(model.masses[:, None] * s.v ** 2))
+    grav = float(np.sum(model.masses * 9.81 * s.x[:, 2]))
+    sp = model.springs
+    length = np.linalg.norm(s.x[sp.j] - s.x[sp.i], axis=1)
+    return ke + grav + 0.5 * float(np.sum(sp.k * (length - sp.L0) ** 2))
+
+
+def _barrier_energy(sim, x):
+    """The barrier's stored energy, from its formula (IPC's, written again here) and the sphere's distance."""
+    kappa = sim.model.masses / sim.dt ** 2
+    g = np.linalg.norm(x, axis=1) - 0.2 - TH / 2
+    dh = TH / 2
+    on = (g > 0) & (g < dh)
+    return float(np.sum(kappa[on] * -(g[on] - dh) ** 2 * np.log(g[on] / dh)))
+
+
+def _segment_distance(p0, p1, q0, q1):
+    """Smallest distance between segments p0-p1 (K, 3) and the one segment q0-q1, by dense sampling of the
+    first and the closed form of a point to the second (an independent, brute-force reference)."""
+    s = np.linspace(0.0, 1.0, 65)
+    pts = p0[:, None, :] + s[None, :, None] * (p1 - p0)[:, None, :]
+    e = q1 - q0
+    t = np.clip(np.einsum("ksj,j->ks", pts - q0, e) / np.dot(e, e), 0.0, 1.0)
+    return np.linalg.norm(pts - (q0 + t[..., None] * e), axis=2).min(axis=1)
+
+
+def test_fast_sheet_onto_a_thin_rod_never_crosses_it():
+    """A 16² sheet thrown at 8 m/s onto a rod of 5 mm radius, dt 1/30: no vertex's path between two steps comes
+    within the rod's radius (no tunnelling, judged by a brute-force segment distance), every step ends outside
+    half the thickness, and the energy (kinetic + gravity + springs, from the states) never rises."""
+    rod = {"shape": "capsule", "radius": 0.005, "height": 1.0, "center": [0.0, 0.0, 0.0], "axis": [1.0, 0.0, 0.0],
+           "friction": 0.2}
+    sim = ic.Simulator(_scene([rod], n=16, center=(0.0, 0.0, 0.1), velocity=(0.0, 0.0, -8.0), dt=1 / 30))
+    q0, q1 = np.array([-0.5, 0.0, 0.0]), np.array([0.5, 0.0, 0.0])
+    e0 = _energy(sim.model, sim.state)
+    prev = sim.state
+    worst = np.inf
+    for _ in range(20):
+        sim.step(1)
+        s = sim.state
+        worst = min(worst, float(_segment_distance(prev.x, s.x, q0, q1).min()))
+        end = _segment_distance(s.x, s.x, q0, q1)
+        assert end.min() > 0.005 + TH / 2 - 1e-9
+        assert _energy(sim.model, s) <= e0 + 1e-9 + 1e-3 * e0
+        prev = s
+    assert worst > 0.005
+    # the sheet was stopped by the rod (between its vertex rows: the edges across it hold it): it hangs over it
+    z = sim.state.x[:, 2]
+    assert z.max() > 0.005 and z.min() < -0.02 and abs(z.max()) < 0.05
+
+
+def _drape(accelerator, monkeypatch, n=12, steps=60):
+    monkeypatch.setenv("IMPLICIT_CLOTH_ACCELERATOR", accelerator)
+    sim = ic.Simulator(_scene([SPHERE], n=n, center=(0.0, 0.0, 0.23)))
+    states = [sim.state]
+    for _ in range(steps):
+        sim.step(1)
+        states.append(sim.state)
+    return sim, states
+
+
+def test_drape_on_a_sphere_no_penetration_no_energy_rise_and_rest(monkeypatch):
+    """A sheet dropped on a sphere: every step ends at least half the thickness out (the sphere's distance
+    written here), the energy with the barrier's stored part never rises, and it comes to rest on the sphere."""
+    sim, states = _drape("numpy", monkeypatch, steps=90)
+    m = sim.model
+    total = [_energy(m, s) + _barrier_energy(sim, s.x) for s in states]
+    assert np.all(np.diff(total) <= 1e-7 * abs(total[0]) + 1e-10), np.diff(total).max()
+    for s in states:
+        assert np.linalg.norm(s.x, axis=1).min() > 0.2 + TH / 2
+    rms = np.sqrt(np.mean(np.sum(states[-1].v ** 2, axis=1)))
+    assert rms < 0.05
+    assert np.linalg.norm(states[-1].x, axis=1).min() < 0.2 + TH        # resting within the barrier's reach
+    assert "energy" not in sim.health.events                             # the run's own balance agrees
+
+
+def test_numpy_and_numba_agree_on_a_drape(monkeypatch):
+    pytest.importorskip("numba")
+    _, a = _drape("numpy", monkeypatch, steps=30)
+    _, b = _drape("numba", monkeypatch, steps=30)
+    assert np.abs(a[-1].x - b[-1].x).max() < 1e-6
+    assert np.abs(a[-1].v - b[-1].v).max() < 1e-4
+
+
+# --------------------------------------------------------------------------- input errors
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d["simulation"].update(integrator="symplectic_euler"),
+     "collision.method: 'barrier' minimises the implicit step's potential; it needs an implicit integrator"),
+    (lambda d: d["collision"].update(self_collision=True), "self_collision needs method = 'rounds'"),
+    (lambda d: d["obstacles"][0].update(velocity=[0.0, 0.0, 1.0]), "obstacles[0]: collision.method = 'barrier' "
+                                                                    "supports primitive obstacles that do not move"),
+    (lambda d: d["collision"].update(friction_speed=0.0), "collision.friction_speed: the barrier method's friction"),
+    (lambda d: d["collision"].update(method="barier"), "collision.method: must be one of rounds, barrier "
+                                                       "(did you mean 'barrier'?), got 'barier'"),
+    (lambda d: d["cloth"].update(center=[0.0, 0.0, 0.2 + 0.004], resolution=[9, 9]), "start within half the "
+                                                                                       "thickness"),
+])
+def test_what_the_barrier_method_does_not_take_is_a_clear_error(change, message):
+    d = copy.deepcopy(_scene([dict(SPHERE)]))
+    change(d)
+    with pytest.raises(SceneError) as e:
+        ic.Simulator(d)
+    assert message in str(e.value)
