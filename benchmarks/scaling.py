@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse.linalg as spla
-from _common import ROOT, hanging_stiff, ic, machine, series, spmv_seconds, write_outputs
+from _common import ROOT, default_out, hanging_stiff, ic, machine, series, spmv_seconds, write_outputs
 
 from implicit_cloth.backend import resolve as resolve_accelerator
 from implicit_cloth.backend import set_default_accelerator
@@ -493,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trajectory-settle", type=float, nargs="*", default=[0.0, 2.0],
                    help="start the trajectory comparison from rest (0) and/or after this many seconds of a "
                         "tight run (the flat start's buckling amplifies any difference ~1e7 times)")
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--out", default=default_out('scaling'), help="output folder (default out/bench/scaling; --out benchmarks/results replaces the committed result)")
     p.add_argument("--quick", action="store_true", help="tiny sizes and few steps (CI smoke test)")
     p.add_argument("--adaptive", action="store_true",
                    help="keep the default adaptive step control (off here: one solve a step)")

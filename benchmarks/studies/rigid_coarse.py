@@ -26,8 +26,8 @@ a lever, by its iteration counts (the compiled path's ms would decide).
 
 Usage::
 
-    python benchmarks/rigid_coarse.py                 # 32², 64², 128²: stiff, hanging, drape (~5 min)
-    python benchmarks/rigid_coarse.py --quick         # seconds (CI smoke)
+    python benchmarks/studies/rigid_coarse.py                 # 32², 64², 128²: stiff, hanging, drape (~5 min)
+    python benchmarks/studies/rigid_coarse.py --quick         # seconds (CI smoke)
 
 Writes ``OUT/rigid_coarse.{json,md}``. Never asserts.
 """
@@ -35,12 +35,16 @@ Writes ``OUT/rigid_coarse.{json,md}``. Never asserts.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
-from _common import ROOT, machine, system_table, write_outputs
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # benchmarks/: _common and the benchmarks studied
+
+from _common import default_out, machine, system_table, write_outputs
 from solver_choice import VCycle, _bdiag, capture, direct
 
 from implicit_cloth.solvers.multigrid import grid_prolongations
@@ -207,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--peer-step", type=int, default=120, help="120: the peer scene at 2 s (the drape at rest)")
     p.add_argument("--tolerance", type=float, default=1e-3)
     p.add_argument("--quick", action="store_true", help="tiny run (CI smoke)")
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    p.add_argument("--out", type=Path, default=Path(default_out('rigid_coarse')), help="output folder (default out/bench/rigid_coarse; --out benchmarks/results replaces the committed result)")
     a = p.parse_args(argv)
     if a.quick:
         a.sizes, a.systems, a.stiff_step, a.peer_step = [16], ["stiff", "drape"], 3, 30

@@ -53,9 +53,9 @@ shared machine: an indication only.
 
 Usage::
 
-    python benchmarks/mg_levers.py --sizes 32 64 128 256 --out benchmarks/results
-    python benchmarks/mg_levers.py --sizes 32 64 --variants jacobi gs --steps 1 10
-    python benchmarks/mg_levers.py --variants jacobi jacobi_f K K2 K_gs --out /tmp/kcycle_run
+    python benchmarks/studies/mg_levers.py --sizes 32 64 128 256 --out benchmarks/results
+    python benchmarks/studies/mg_levers.py --sizes 32 64 --variants jacobi gs --steps 1 10
+    python benchmarks/studies/mg_levers.py --variants jacobi jacobi_f K K2 K_gs --out /tmp/kcycle_run
 
 Writes ``OUT/mg_levers.{json,md}`` (``--merge`` rebuilds them from earlier runs' JSON; the notes below the table in
 ``benchmarks/results/mg_levers.md`` are hand-written). Never asserts.
@@ -65,6 +65,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -72,7 +73,10 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from _common import ROOT, hanging_stiff, ic, machine, write_outputs
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # benchmarks/: _common and the benchmarks studied
+
+from _common import default_out, hanging_stiff, ic, machine, write_outputs
 from solver_choice import _bdiag, _diag_blocks, chebyshev, direct, power_bound, rigid_modes
 
 from implicit_cloth.solvers import make_preconditioner
@@ -641,7 +645,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--k", type=float, default=1e4)
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     p.add_argument("--tolerance", type=float, default=None, help="default: the solver's default tolerance")
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--out", default=default_out('mg_levers'), help="output folder (default out/bench/mg_levers; --out benchmarks/results replaces the committed result)")
     p.add_argument("--merge", nargs="+", default=[],
                    help="mg_levers.json files of earlier runs (same steps and k) whose rows are merged, no new solves")
     a = p.parse_args(argv)

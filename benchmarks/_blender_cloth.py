@@ -1,6 +1,6 @@
 """Blender 3.4's cloth on the benchmark scene of ``vs_blender.py``; run inside Blender, prints one RESULT line.
 
-    blender -b --factory-startup -noaudio --python benchmarks/blender_cloth.py -- --scene hanging --n 64
+    blender -b --factory-startup -noaudio --python benchmarks/_blender_cloth.py -- --scene hanging --n 64
 
 The scene, in SI units (the same as ``vs_blender.scene``): a 1 m x 1 m cloth of n x n vertices in the xy
 plane, 0.1 kg, springs k = 1000 (structural) / 333.3 (shear) / 10 (bend) N/m, damping 0.01 N*s/m, no air

@@ -6,9 +6,9 @@ full run would be slow) with ``Simulator.run`` and reduced to two SHA-256 digest
 of the trajectory (positions and times, as raw float64 bytes) and one of the report's
 numbers (every entry except wall-clock timings, which differ from run to run).
 
-    python benchmarks/digests.py                          # print a table, both back-ends
-    python benchmarks/digests.py --write benchmarks/results/digests.json
-    python benchmarks/digests.py --compare benchmarks/results/digests.json   # exit 1 on any difference
+    python benchmarks/tools/digests.py                          # print a table, both back-ends
+    python benchmarks/tools/digests.py --write out/digests.json
+    python benchmarks/tools/digests.py --compare out/digests.json   # exit 1 on any difference
 
 Each back-end runs in its own process with ``IMPLICIT_CLOTH_ACCELERATOR`` set (numpy,
 numba); a back-end that is not installed is reported as skipped.
@@ -28,7 +28,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Callable
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples"
 BACKENDS = ("numpy", "numba")
 MAX_DURATION = 0.3      # s: examples are cut to at most this much simulated time
@@ -85,6 +85,7 @@ def digest_run(sim: Any, duration: float, frame_rate: float | None = None) -> di
 def scenes() -> dict[str, Callable[[], dict[str, Any]]]:
     """Name -> a thunk that runs the scene and returns its digests."""
     sys.path.insert(0, str(ROOT))
+    sys.path.insert(0, str(ROOT / "benchmarks"))   # the benchmarks import each other by name
     import implicit_cloth as ic
 
     table: dict[str, Callable[[], dict[str, Any]]] = {}

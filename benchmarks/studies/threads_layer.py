@@ -19,8 +19,8 @@ alternating variants and thread counts within each repetition, this measures
 
 Usage::
 
-    python benchmarks/threads_layer.py                      # 64², 128², 256², 3 repetitions (~15 min)
-    python benchmarks/threads_layer.py --quick              # CI smoke: 32², one repetition, no busy core
+    python benchmarks/studies/threads_layer.py                      # 64², 128², 256², 3 repetitions (~15 min)
+    python benchmarks/studies/threads_layer.py --quick              # CI smoke: 32², one repetition, no busy core
 
 Writes ``OUT/threads_layer.{json,md}`` (``OUT`` = ``benchmarks/results``, or ``--out``). Never asserts.
 """
@@ -37,7 +37,7 @@ import sys
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parents[1]   # benchmarks/: _common and vs_blender
 #: variant -> (numba layer, extra environment)
 VARIANTS = {"omp": ("omp", {}), "omp-spin": ("omp", {"GOMP_SPINCOUNT": "300000"}), "tbb": ("tbb", {}),
             "workqueue": ("workqueue", {})}
@@ -196,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--quick", action="store_true", help="CI smoke: 32², one repetition, no busy core")
     p.add_argument("--no-busy", action="store_true", help="leave out the runs with a core kept busy")
-    p.add_argument("--out", type=Path, default=HERE / "results")
+    p.add_argument("--out", type=Path, default=Path("out") / "bench" / "threads_layer", help="output folder (default out/bench/threads_layer; --out benchmarks/results replaces the committed result)")
     p.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:

@@ -38,9 +38,9 @@ the model's live system matrix, as the integrator runs them: set-up and solve ti
 
 Usage::
 
-    python benchmarks/solver_choice.py --sizes 32 64            # ~10 min on 2 shared cores
-    python benchmarks/solver_choice.py --sizes 32 64 128 256 --systems stiff
-    python benchmarks/solver_choice.py --sizes 128 256 --levers jacobi lib_multigrid lib_smoothed
+    python benchmarks/studies/solver_choice.py --sizes 32 64            # ~10 min on 2 shared cores
+    python benchmarks/studies/solver_choice.py --sizes 32 64 128 256 --systems stiff
+    python benchmarks/studies/solver_choice.py --sizes 128 256 --levers jacobi lib_multigrid lib_smoothed
 
 Writes ``OUT/solver_choice.{json,md}``. Never asserts.
 """
@@ -48,6 +48,7 @@ Writes ``OUT/solver_choice.{json,md}``. Never asserts.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -55,7 +56,10 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from _common import ROOT, hanging_stiff, ic, machine, series, write_outputs
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # benchmarks/: _common and the benchmarks studied
+
+from _common import default_out, hanging_stiff, ic, machine, series, write_outputs
 from vs_blender import scene as peer_scene
 
 from implicit_cloth.solvers.blocks import inv3
@@ -357,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tolerance", type=float, default=1e-3)
     p.add_argument("--stiff-step", type=int, default=21)
     p.add_argument("--peer-step", type=int, default=120)
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--out", default=default_out('solver_choice'), help="output folder (default out/bench/solver_choice; --out benchmarks/results replaces the committed result)")
     a = p.parse_args(argv)
     library = [x for x in a.levers if x in LIBRARY]
     if library:

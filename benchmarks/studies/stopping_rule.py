@@ -35,10 +35,10 @@ systems. ~25 min for the default sizes on the 2-core test machine.
 
 Usage::
 
-    python benchmarks/stopping_rule.py                      # 32, 64, 128; both k; the drape
-    python benchmarks/stopping_rule.py --quick              # seconds
-    python benchmarks/stopping_rule.py --save-records /tmp/rec.pkl
-    python benchmarks/stopping_rule.py --from-records /tmp/rec.pkl
+    python benchmarks/studies/stopping_rule.py                      # 32, 64, 128; both k; the drape
+    python benchmarks/studies/stopping_rule.py --quick              # seconds
+    python benchmarks/studies/stopping_rule.py --save-records /tmp/rec.pkl
+    python benchmarks/studies/stopping_rule.py --from-records /tmp/rec.pkl
 
 Writes ``OUT/stopping_rule.json``, ``OUT/stopping_rule.md`` and ``OUT/stopping_rule.png`` (the
 distribution of true error / tol per rule and tolerance; ``OUT/stopping_rule_from_records.*`` with
@@ -48,12 +48,16 @@ distribution of true error / tol per rule and tolerance; ``OUT/stopping_rule_fro
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from _common import ROOT, hanging_stiff, ic, machine, progress, save_png, write_outputs
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # benchmarks/: _common and the benchmarks studied
+
+from _common import ROOT, default_out, hanging_stiff, ic, machine, progress, save_png, write_outputs
 
 from implicit_cloth.integrators import base
 from implicit_cloth.solvers import pcg as pcg_mod
@@ -161,7 +165,9 @@ class Capture:
             out = self._orig(A, b, z, filt, precond, tol, max_iterations, **kw)
             if self.want:
                 f2 = pcg_mod.Filter(filt.n, filt.fixed.copy(), filt.partial.copy(), filt.partial_S.copy())
-                sysm = (A.copy(), b.copy(), z.copy(), f2, precond, kw.get("mass"), tol, out[1])
+                # A is the model's SystemMatrix (finalized lazily): its CSR
+                csr = sp.csr_array(getattr(A, "csr", A), copy=True)
+                sysm = (csr, b.copy(), z.copy(), f2, precond, kw.get("mass"), tol, out[1])
                 self.systems.append(sysm)
                 self.want = False
             return out
@@ -311,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--save-records", type=Path, default=None, help="also save the raw records (npz) here")
     p.add_argument("--from-records", type=Path, default=None,
                    help="re-evaluate the rules on records saved by --save-records instead of simulating")
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    p.add_argument("--out", type=Path, default=Path(default_out('stopping_rule')), help="output folder (default out/bench/stopping_rule; --out benchmarks/results replaces the committed result)")
     a = p.parse_args(argv)
     global RECORDS
     if a.save_records is not None:

@@ -4,18 +4,22 @@ the rms speed at the end. No Blender needed; for the ratio against Blender run `
 
 Usage::
 
-    python benchmarks/preconditioner_peer.py --sizes 32 64 128 --out DIR    # writes DIR/preconditioner_peer.json
+    python benchmarks/studies/preconditioner_peer.py --sizes 32 64 128 --out DIR    # writes DIR/preconditioner_peer.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import ic, machine
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # benchmarks/: _common and the benchmarks studied
+
+from _common import default_out, ic, machine
 from vs_blender import scene
 
 PRECONDITIONERS = ("multigrid", "multigrid_smoothed")
@@ -42,7 +46,7 @@ def run(kind: str, n: int, fixed: bool, pc: str) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128])
-    p.add_argument("--out", default=".")
+    p.add_argument("--out", default=default_out('preconditioner_peer'), help="output folder (default out/bench/preconditioner_peer; --out benchmarks/results replaces the committed result)")
     a = p.parse_args(argv)
     rows = []
     for kind, fixed in (("hanging", True), ("hanging", False), ("drape", False)):

@@ -28,9 +28,9 @@ scene's if the reference moves, the large step's if it is at rest.
 
 Usage::
 
-    python benchmarks/rest_reference.py --workers 2            # the README's three rows (about 7 min on 2 cores)
-    python benchmarks/rest_reference.py --rows capsule:32:60    # one row: SHAPE:N:1/DT
-    python benchmarks/rest_reference.py --quick                 # CI smoke
+    python benchmarks/studies/rest_reference.py --workers 2            # the README's three rows (about 7 min on 2 cores)
+    python benchmarks/studies/rest_reference.py --rows capsule:32:60    # one row: SHAPE:N:1/DT
+    python benchmarks/studies/rest_reference.py --quick                 # CI smoke
 
 Writes ``OUT/rest_reference.{json,md,png}`` (``--out``, default benchmarks/results). Never asserts.
 """
@@ -44,7 +44,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import ROOT, friction_text, friction_used, ic, machine, run_all, save_png, write_outputs
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # benchmarks/: _common and the benchmarks studied
+
+from _common import default_out, friction_text, friction_used, ic, machine, run_all, save_png, write_outputs
 from contact_energy import (
     ON_DISTANCE,
     REST_SPEED,
@@ -153,7 +156,7 @@ def verdict(rows: list[dict]) -> str:
 
 def markdown(res: dict) -> str:
     lines = [f"Rows of the contact table run at finer steps and with an explicit reference, by "
-             f"`benchmarks/rest_reference.py` ({'quick' if res['quick'] else 'full'} run, {res['wall_s']:.0f} s; "
+             f"`benchmarks/studies/rest_reference.py` ({'quick' if res['quick'] else 'full'} run, {res['wall_s']:.0f} s; "
              f"{res['duration']:g} s of the contact table's static scene"
              + ")." + friction_text(res) + " rms: the rms vertex speed; on it: that of the vertices within 2 thicknesses of the obstacle;"
              " rise: largest E(t) - E(0) over m g (1 m), from the states.", "",
@@ -213,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="collision.friction_speed, m/s (0: Coulomb's states; default: the library's)")
     p.add_argument("--friction-newton", type=int, default=None, metavar="K")
     p.add_argument("--workers", type=int, default=1)
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    p.add_argument("--out", type=Path, default=Path(default_out('rest_reference')), help="output folder (default out/bench/rest_reference; --out benchmarks/results replaces the committed result)")
     args = p.parse_args(argv)
     if args.quick:
         args.rows, args.factors, args.duration, args.explicit = ["capsule:8:30"], [2], 0.3, 4e-4

@@ -23,8 +23,8 @@ The stiffened matrices are *not* the library's system (the step would change): a
 
 Usage::
 
-    python benchmarks/soft_modes.py                    # 32², 64² (~2 min on 2 shared cores)
-    python benchmarks/soft_modes.py --sizes 32 64 128  # (~10 min; benchmarks/results/soft_modes.{json,md})
+    python benchmarks/studies/soft_modes.py                    # 32², 64² (~2 min on 2 shared cores)
+    python benchmarks/studies/soft_modes.py --sizes 32 64 128  # (~10 min; benchmarks/results/soft_modes.{json,md})
 
 Writes ``OUT/soft_modes.{json,md}``. Never asserts.
 """
@@ -32,11 +32,15 @@ Writes ``OUT/soft_modes.{json,md}``. Never asserts.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-from _common import ROOT, machine, system_table, write_outputs
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # benchmarks/: _common and the benchmarks studied
+
+from _common import default_out, machine, system_table, write_outputs
 from solver_choice import VCycle, capture, direct
 
 from implicit_cloth.solvers.multigrid import grid_prolongations
@@ -129,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tolerance", type=float, default=1e-3)
     p.add_argument("--variants", nargs="+", default=None, help="only these variants (labels; default all)")
     p.add_argument("--quick", action="store_true", help="tiny run (CI smoke)")
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    p.add_argument("--out", type=Path, default=Path(default_out('soft_modes')), help="output folder (default out/bench/soft_modes; --out benchmarks/results replaces the committed result)")
     a = p.parse_args(argv)
     if a.quick:
         a.sizes, a.step = [12], 30
