@@ -513,7 +513,7 @@ def main(argv: list[str] | None = None) -> int:
                         "iterations)")
     p.add_argument("--big-memory-gb", type=float, default=12.0,
                    help="address-space limit of each --big-sizes process (a shared machine), GB")
-    p.add_argument("--blender", default=str(ROOT / "benchmarks" / "results" / "vs_blender.json"),
+    p.add_argument("--blender", default=str(ROOT / "benchmarks" / "results" / "vs_blender_fixed.json"),
                    help="vs_blender.py's JSON, whose hanging rows are drawn in the plot (if the file exists)")
     p.add_argument("--replot", type=Path, metavar="JSON",
                    help="run nothing: draw this earlier result's table and plot again (Blender's points from "
