@@ -56,7 +56,7 @@ Usage::
     python benchmarks/contact_energy.py --workers 2     # rows in parallel processes
 
 Writes ``OUT/contact_energy.{json,md,png}`` (``--out``, default
-benchmarks/results). Never asserts: the goals are read off the table.
+out/bench/contact_energy). Never asserts: the goals are read off the table.
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ then the friction's Newton corrections and the balance-driven refinement (``coll
 
 Usage::
 
-    python benchmarks/studies/drape_phases.py --sizes 32 64 128 --threads 2 --out benchmarks/results
+    python benchmarks/studies/drape_phases.py --sizes 32 64 128 --threads 2
     python benchmarks/studies/drape_phases.py --quick --out OUT          # CI smoke: tiny and fast
 
 Writes ``OUT/drape_phases.json`` (per-frame figures, phases, machine) and ``OUT/drape_phases.md`` (the table);
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=120, help="frames of 1/60 s (default 120: 2 s, as vs_blender)")
     p.add_argument("--threads", type=int, default=None, help="solver threads (default: the library's)")
     p.add_argument("--rest-speed", type=float, default=0.01, help="rms speed (m/s) below which the cloth is at rest")
-    p.add_argument("--out", default=default_out('drape_phases'), help="output folder (default out/bench/drape_phases; --out benchmarks/results replaces the committed result)")
+    p.add_argument("--out", default=default_out('drape_phases'), help="output folder (default out/bench/drape_phases)")
     p.add_argument("--quick", action="store_true", help="a 16² drape for 40 frames (CI smoke test)")
     a = p.parse_args(argv)
     if a.quick:

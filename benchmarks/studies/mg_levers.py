@@ -25,7 +25,7 @@ matrices of the filtered fine matrix ``S A S + (I - S)``, dense Cholesky at the 
 * ``sa_rigid``: pyamg's smoothed aggregation of ``S A S + (I - S)`` (3x3 blocks) with the six rigid motions at the
   step's positions as near-null space, its default V-cycle (symmetric block Gauss-Seidel) as preconditioner;
   its setup is pyamg's, per system;
-* smoothed prolongations (``benchmarks/results/mg_levers_smoothed_p.md``): ``sp`` / ``sp_fine`` / ``sp2``:
+* smoothed prolongations: ``sp`` / ``sp_fine`` / ``sp2``:
   ``P = (I - w D^-1 A_l) P0`` (smoothed aggregation's smoothing on the geometric ``P0``, ``w = 4 / (3 rho)`` from
   a power estimate) on every level / the finest / the first two, untruncated; ``spr`` / ``spr_fine``: kept on
   ``P0``'s block pattern (3x3 blocks); ``spr_sum`` (``_fine``, ``2``): the same with every fine vertex's block
@@ -53,12 +53,11 @@ shared machine: an indication only.
 
 Usage::
 
-    python benchmarks/studies/mg_levers.py --sizes 32 64 128 256 --out benchmarks/results
+    python benchmarks/studies/mg_levers.py --sizes 32 64 128 256
     python benchmarks/studies/mg_levers.py --sizes 32 64 --variants jacobi gs --steps 1 10
     python benchmarks/studies/mg_levers.py --variants jacobi jacobi_f K K2 K_gs --out /tmp/kcycle_run
 
-Writes ``OUT/mg_levers.{json,md}`` (``--merge`` rebuilds them from earlier runs' JSON; the notes below the table in
-``benchmarks/results/mg_levers.md`` are hand-written). Never asserts.
+Writes ``OUT/mg_levers.{json,md}`` (``--merge`` rebuilds them from earlier runs' JSON). Never asserts.
 """
 
 from __future__ import annotations
@@ -645,7 +644,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--k", type=float, default=1e4)
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     p.add_argument("--tolerance", type=float, default=None, help="default: the solver's default tolerance")
-    p.add_argument("--out", default=default_out('mg_levers'), help="output folder (default out/bench/mg_levers; --out benchmarks/results replaces the committed result)")
+    p.add_argument("--out", default=default_out('mg_levers'), help="output folder (default out/bench/mg_levers)")
     p.add_argument("--merge", nargs="+", default=[],
                    help="mg_levers.json files of earlier runs (same steps and k) whose rows are merged, no new solves")
     a = p.parse_args(argv)

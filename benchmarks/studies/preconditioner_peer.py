@@ -46,7 +46,7 @@ def run(kind: str, n: int, fixed: bool, pc: str) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128])
-    p.add_argument("--out", default=default_out('preconditioner_peer'), help="output folder (default out/bench/preconditioner_peer; --out benchmarks/results replaces the committed result)")
+    p.add_argument("--out", default=default_out('preconditioner_peer'), help="output folder (default out/bench/preconditioner_peer)")
     a = p.parse_args(argv)
     rows = []
     for kind, fixed in (("hanging", True), ("hanging", False), ("drape", False)):

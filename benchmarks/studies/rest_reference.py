@@ -32,7 +32,7 @@ Usage::
     python benchmarks/studies/rest_reference.py --rows capsule:32:60    # one row: SHAPE:N:1/DT
     python benchmarks/studies/rest_reference.py --quick                 # CI smoke
 
-Writes ``OUT/rest_reference.{json,md,png}`` (``--out``, default benchmarks/results). Never asserts.
+Writes ``OUT/rest_reference.{json,md,png}`` (``--out``, default out/bench/rest_reference). Never asserts.
 """
 
 from __future__ import annotations
@@ -216,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="collision.friction_speed, m/s (0: Coulomb's states; default: the library's)")
     p.add_argument("--friction-newton", type=int, default=None, metavar="K")
     p.add_argument("--workers", type=int, default=1)
-    p.add_argument("--out", type=Path, default=Path(default_out('rest_reference')), help="output folder (default out/bench/rest_reference; --out benchmarks/results replaces the committed result)")
+    p.add_argument("--out", type=Path, default=Path(default_out('rest_reference')), help="output folder (default out/bench/rest_reference)")
     args = p.parse_args(argv)
     if args.quick:
         args.rows, args.factors, args.duration, args.explicit = ["capsule:8:30"], [2], 0.3, 4e-4

@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--peer-step", type=int, default=120, help="120: the peer scene at 2 s (the drape at rest)")
     p.add_argument("--tolerance", type=float, default=1e-3)
     p.add_argument("--quick", action="store_true", help="tiny run (CI smoke)")
-    p.add_argument("--out", type=Path, default=Path(default_out('rigid_coarse')), help="output folder (default out/bench/rigid_coarse; --out benchmarks/results replaces the committed result)")
+    p.add_argument("--out", type=Path, default=Path(default_out('rigid_coarse')), help="output folder (default out/bench/rigid_coarse)")
     a = p.parse_args(argv)
     if a.quick:
         a.sizes, a.systems, a.stiff_step, a.peer_step = [16], ["stiff", "drape"], 3, 30

@@ -24,7 +24,7 @@ The stiffened matrices are *not* the library's system (the step would change): a
 Usage::
 
     python benchmarks/studies/soft_modes.py                    # 32², 64² (~2 min on 2 shared cores)
-    python benchmarks/studies/soft_modes.py --sizes 32 64 128  # (~10 min; benchmarks/results/soft_modes.{json,md})
+    python benchmarks/studies/soft_modes.py --sizes 32 64 128  # (~10 min)
 
 Writes ``OUT/soft_modes.{json,md}``. Never asserts.
 """
@@ -133,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tolerance", type=float, default=1e-3)
     p.add_argument("--variants", nargs="+", default=None, help="only these variants (labels; default all)")
     p.add_argument("--quick", action="store_true", help="tiny run (CI smoke)")
-    p.add_argument("--out", type=Path, default=Path(default_out('soft_modes')), help="output folder (default out/bench/soft_modes; --out benchmarks/results replaces the committed result)")
+    p.add_argument("--out", type=Path, default=Path(default_out('soft_modes')), help="output folder (default out/bench/soft_modes)")
     a = p.parse_args(argv)
     if a.quick:
         a.sizes, a.step = [12], 30

@@ -361,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tolerance", type=float, default=1e-3)
     p.add_argument("--stiff-step", type=int, default=21)
     p.add_argument("--peer-step", type=int, default=120)
-    p.add_argument("--out", default=default_out('solver_choice'), help="output folder (default out/bench/solver_choice; --out benchmarks/results replaces the committed result)")
+    p.add_argument("--out", default=default_out('solver_choice'), help="output folder (default out/bench/solver_choice)")
     a = p.parse_args(argv)
     library = [x for x in a.levers if x in LIBRARY]
     if library:

@@ -317,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--save-records", type=Path, default=None, help="also save the raw records (npz) here")
     p.add_argument("--from-records", type=Path, default=None,
                    help="re-evaluate the rules on records saved by --save-records instead of simulating")
-    p.add_argument("--out", type=Path, default=Path(default_out('stopping_rule')), help="output folder (default out/bench/stopping_rule; --out benchmarks/results replaces the committed result)")
+    p.add_argument("--out", type=Path, default=Path(default_out('stopping_rule')), help="output folder (default out/bench/stopping_rule)")
     a = p.parse_args(argv)
     global RECORDS
     if a.save_records is not None:

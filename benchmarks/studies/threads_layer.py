@@ -22,7 +22,7 @@ Usage::
     python benchmarks/studies/threads_layer.py                      # 64², 128², 256², 3 repetitions (~15 min)
     python benchmarks/studies/threads_layer.py --quick              # CI smoke: 32², one repetition, no busy core
 
-Writes ``OUT/threads_layer.{json,md}`` (``OUT`` = ``benchmarks/results``, or ``--out``). Never asserts.
+Writes ``OUT/threads_layer.{json,md}`` (``OUT`` = ``out/bench/threads_layer``, or ``--out``). Never asserts.
 """
 
 from __future__ import annotations
@@ -196,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--quick", action="store_true", help="CI smoke: 32², one repetition, no busy core")
     p.add_argument("--no-busy", action="store_true", help="leave out the runs with a core kept busy")
-    p.add_argument("--out", type=Path, default=Path("out") / "bench" / "threads_layer", help="output folder (default out/bench/threads_layer; --out benchmarks/results replaces the committed result)")
+    p.add_argument("--out", type=Path, default=Path("out") / "bench" / "threads_layer", help="output folder (default out/bench/threads_layer)")
     p.add_argument("--worker", nargs="+", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
