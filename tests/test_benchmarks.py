@@ -292,3 +292,30 @@ def test_drape_phases_quick(tmp_path):
     assert sum(p["frames"] for p in ph.values()) == 39
     assert ph["fall"]["rounds"] == 1.0 and ph["landing"]["solves"] > ph["fall"]["solves"]
     assert (tmp_path / "drape_phases_quick.md").read_text().count("\n| 16² |") == 4
+
+
+def test_stopping_rule_quick(tmp_path):
+    """The stopping-rule study captures real steps' systems (the model's SystemMatrix, copied as its CSR) and
+    replays CG on them: every scene sampled, each captured system solved, the rules' errors measured."""
+    subprocess.run([sys.executable, str(STUDIES / "stopping_rule.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    res = json.loads((tmp_path / "stopping_rule.json").read_text())
+    assert res["benchmark"] == "stopping_rule" and res["quick"] is True
+    assert len(res["scenes"]) == 3 and res["rows"]
+    assert "| drape on sphere |" in (tmp_path / "stopping_rule.md").read_text()
+
+
+def test_mg_levers_and_preconditioner_peer_run_small(tmp_path):
+    """The two studies without a quick mode still run, at a small size: the numpy V-cycle solves a captured
+    system to its tolerance; the peer scenes run with both preconditioners."""
+    subprocess.run([sys.executable, str(STUDIES / "mg_levers.py"), "--sizes", "16", "--steps", "2", "--variants",
+                    "jacobi", "--out", str(tmp_path)], check=True, capture_output=True, text=True)
+    (row,) = json.loads((tmp_path / "mg_levers.json").read_text())["rows"]
+    assert row["variant"] == "jacobi" and row["converged"] and row["true_error"] < 1e-2
+    subprocess.run([sys.executable, str(STUDIES / "preconditioner_peer.py"), "--sizes", "8", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    rows = json.loads((tmp_path / "preconditioner_peer.json").read_text())["rows"]
+    assert {(r["scene"], r["fixed_steps"], r["preconditioner"]) for r in rows} == {
+        (s, f, pc) for s, f in (("hanging", True), ("hanging", False), ("drape", False))
+        for pc in ("multigrid", "multigrid_smoothed")}
+    assert all(r["iterations_per_frame"] >= 1 and r["ms_per_frame"] > 0 for r in rows)
