@@ -168,8 +168,9 @@ def markdown(res: dict) -> str:
     mode = "fixed steps (one per frame)" if res["fixed"] else "default step control (adaptive)"
     out = [f"ms per 1/60 s frame, median of {res['pairs']} alternating pairs; ours: tolerance "
            f"{res['tolerance'] or 1e-3:g}, {mode}, {res['threads'] or 1} solver thread(s), preconditioner "
-           f"{_preconditioner_text(res)}; Blender "
-           f"{res['blender_version']}, one thread, CG capped at 100 iterations / 1e-2 residual."
+           f"{_preconditioner_text(res)}; "
+           + ("Blender not installed: our side only." if res["blender_version"] == "not installed" else
+              f"Blender {res['blender_version']}, one thread, CG capped at 100 iterations / 1e-2 residual.")
            + _friction_text(res), "",
            "| scene | grid | ours (ms/frame) | Blender (ms/frame) | ratio ours / Blender | ours: CG its / frame | "
            "ours: solves / frame | ours: rms speed at the end (m/s) | Blender: rms speed (m/s) |",

@@ -167,17 +167,22 @@ def test_rest_reference_quick(tmp_path):
 
 
 def test_vs_blender_without_blender_and_its_worker_reports(tmp_path):
-    """Without Blender on PATH the comparison says so on stderr and exits 1, writing nothing (``--quick`` runs
-    our side alone: see test_every_listed_benchmark_runs_quick); the worker that times our side prints one
-    RESULT record (a small cloth, fixed steps) with the fields the comparison reads."""
-    import os
-
+    """Without Blender on PATH the comparison says so on stderr and exits 1, writing nothing, and ``--quick``
+    runs our side alone; the worker that times our side prints one RESULT record (a small cloth, fixed steps)
+    with the fields the comparison reads."""
     env = dict(os.environ, PATH=str(Path(sys.executable).parent))       # no blender there
     script = str(ROOT / "benchmarks" / "vs_blender.py")
     proc = subprocess.run([sys.executable, script, "--sizes", "8", "--out", str(tmp_path)], env=env,
                           capture_output=True, text=True)
     assert proc.returncode == 1 and "Blender is not installed" in proc.stderr and "--quick" in proc.stderr
     assert not list(tmp_path.iterdir())
+    # --quick without Blender: our side alone, Blender's columns empty
+    out = subprocess.run([sys.executable, script, "--quick", "--scenes", "hanging", "--out", str(tmp_path)], env=env,
+                         check=True, capture_output=True, text=True).stdout
+    assert "Blender is not installed: our side only" in out
+    (row,) = json.loads((tmp_path / "vs_blender.json").read_text())["rows"]
+    assert row["n"] == 8 and row["ours_ms"] > 0 and row["blender_ms"] is None and row["ratio"] is None
+    assert "| hanging | 8² |" in out and "| - | - |" in out
     out = subprocess.run([sys.executable, script, "--worker", "--scenes", "drape", "--sizes", "8", "--fixed"],
                          check=True, capture_output=True, text=True).stdout
     res = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
@@ -267,11 +272,11 @@ def test_rigid_coarse_quick(tmp_path):
 
 def test_threads_layer_quick(tmp_path):
     """The threading-layer study runs each layer that loads here on one and two threads, in its own processes."""
-    subprocess.run([sys.executable, str(STUDIES / "threads_layer.py"), "--quick", "--out", str(tmp_path)],
-                   check=True, capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, str(STUDIES / "threads_layer.py"), "--quick", "--out", str(tmp_path)],
+                          check=True, capture_output=True, text=True)
     res = json.loads((tmp_path / "threads_layer.json").read_text())
     assert res["benchmark"] == "threads_layer" and res["quick"] is True
-    assert res["rows"] and {r["n"] for r in res["rows"]} == {32}
+    assert res["rows"] and {r["n"] for r in res["rows"]} == {32}, proc.stderr[-2000:]
     for r in res["rows"]:
         assert r["layer"] in ("tbb", "omp", "omp-spin", "workqueue") and r["ms_1"] > 0 and r["ms_2"] > 0
         assert r["same_numbers"]                     # two threads give one thread's positions to the last bit

@@ -121,7 +121,10 @@ def _run(variant: str, args: list[str], busy: bool = False) -> dict | None:
         if line.startswith("RESULT "):
             res = json.loads(line[7:])
             return res if res["layer"] == layer else None
-    return None                                           # the layer does not load here
+    # the layer does not load here, or the worker failed: say which, so that a missing row has a reason
+    last = (proc.stderr.strip().splitlines() or [""])[-1]
+    print(f"threads_layer: {variant} {' '.join(args)}: no result (exit {proc.returncode}) {last}", file=sys.stderr)
+    return None
 
 
 def _measure(layers: list[str], sizes: list[int], repeats: int, quick: bool, busy: bool) -> tuple[dict, dict]:
