@@ -28,6 +28,12 @@ def machine() -> dict:
     }
 
 
+def default_out(name: str) -> str:
+    """Where benchmark ``name`` writes without ``--out``: ``out/bench/NAME`` under the working directory (git
+    ignores ``out/``), never over the committed results; ``--out benchmarks/results`` writes there."""
+    return str(Path("out") / "bench" / name)
+
+
 def write_outputs(out: Path, name: str, result: dict, markdown: str) -> None:
     """Write ``OUT/NAME.json`` and ``OUT/NAME.md`` atomically."""
     out = Path(out)

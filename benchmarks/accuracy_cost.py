@@ -99,7 +99,7 @@ from pathlib import Path
 
 import numpy as np
 import stability
-from _common import FIXED_STEPS, ROOT, ic, machine, progress, save_png, write_outputs
+from _common import FIXED_STEPS, default_out, ic, machine, progress, save_png, write_outputs
 
 from implicit_cloth import diagnostics
 
@@ -466,7 +466,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--clock", choices=["cpu", "wall"], default="cpu",
                    help="cost measure: process CPU time (default) or wall time")
     p.add_argument("--levels", type=float, nargs="+", default=list(LEVELS), help="RMS error levels")
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--out", default=default_out('accuracy_cost'), help="output folder (default out/bench/accuracy_cost; --out benchmarks/results replaces the committed result)")
     p.add_argument("--quick", action="store_true", help="6² cloth, 0.2 s, two tolerances, one repeat (CI smoke)")
     p.add_argument("--k", type=float, default=K, help="structural and shear spring stiffness, N/m (bend k/100)")
     p.add_argument("--name", default="accuracy_cost", help="output file stem (OUT/NAME.json, .md, .png)")

@@ -24,7 +24,7 @@ import statistics
 import time
 from pathlib import Path
 
-from _common import ROOT, ic, machine, write_outputs
+from _common import ROOT, default_out, ic, machine, write_outputs
 
 
 def measure(scene: ic.Scene, n: int, warmup: int, steps: int) -> dict:
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128])
     p.add_argument("--warmup", type=int, default=60, help="untimed steps first (the cloth lands)")
     p.add_argument("--steps", type=int, default=20)
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--out", default=default_out('collision'), help="output folder (default out/bench/collision; --out benchmarks/results replaces the committed result)")
     p.add_argument("--quick", action="store_true", help="tiny sizes and few steps (CI smoke test)")
     a = p.parse_args(argv)
     if a.quick:

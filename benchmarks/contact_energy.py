@@ -33,7 +33,7 @@ edge-first on the floor plane, and the same sphere and box as triangle meshes
   it still moves, what lies on the obstacle at rest (rms below 1 cm/s: no creep)
   while the finest finer run moves on too (the rest asked for is not the scene's
   at that time: an integrator can only meet it there by damping what it should
-  keep, see ``benchmarks/rest_reference.py``);
+  keep, see ``benchmarks/studies/rest_reference.py``);
 * ``substeps/frame`` (adaptive stepping: accepted substeps per kept frame) and
   ``ms/frame`` (wall time; the machine is shared, so read it as a ratio).
 
@@ -56,7 +56,7 @@ Usage::
     python benchmarks/contact_energy.py --workers 2     # rows in parallel processes
 
 Writes ``OUT/contact_energy.{json,md,png}`` (``--out``, default
-benchmarks/results). Never asserts: the goals are read off the table.
+out/bench/contact_energy). Never asserts: the goals are read off the table.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import ROOT, friction_text, friction_used, ic, machine, run_all, save_png, write_outputs
+from _common import default_out, friction_text, friction_used, ic, machine, run_all, save_png, write_outputs
 
 G = 9.81
 MASS = 0.1
@@ -517,7 +517,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--contact-tolerance", type=float, default=0.0, metavar="TOL",
                    help="solver.contact_tolerance of every row (0: the default, solver.tolerance)")
     p.add_argument("--workers", type=int, default=1)
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    p.add_argument("--out", type=Path, default=Path(default_out('contact_energy')), help="output folder (default out/bench/contact_energy; --out benchmarks/results replaces the committed result)")
     p.add_argument("--merge", nargs="+", type=Path, metavar="JSON",
                    help="run nothing: combine the rows of earlier (partial) runs' contact_energy.json into one table")
     args = p.parse_args(argv)

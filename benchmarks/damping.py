@@ -73,7 +73,7 @@ from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
-from _common import FIXED_STEPS, ROOT, STYLE, ic, machine, progress, save_png, write_outputs
+from _common import FIXED_STEPS, STYLE, default_out, ic, machine, progress, save_png, write_outputs
 
 from implicit_cloth import diagnostics
 
@@ -360,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--omega0", type=float, default=1.5, help="initial rotation rate about the top edge, rad/s")
     p.add_argument("--ref-dt", type=_dt, default=1e-4, help="time step of the RK4 reference, s")
     p.add_argument("--implicit-min-dt", type=_dt, default=1e-3, help="implicit methods skip smaller steps")
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--out", default=default_out('damping'), help="output folder (default out/bench/damping; --out benchmarks/results replaces the committed result)")
     p.add_argument("--quick", action="store_true", help="6² cloth, 0.8 s, three steps (CI smoke)")
     a = p.parse_args(argv)
     if a.quick:

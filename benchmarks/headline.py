@@ -75,7 +75,7 @@ from pathlib import Path
 
 import numpy as np
 import stability
-from _common import FIXED_STEPS, ROOT, hanging_stiff, ic, machine, progress, save_png, write_outputs
+from _common import FIXED_STEPS, ROOT, default_out, hanging_stiff, ic, machine, progress, save_png, write_outputs
 
 EXPLICIT = stability.EXPLICIT
 H = 1 / 60
@@ -335,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="seed of the initial velocity perturbation")
     p.add_argument("--clock", choices=["cpu", "wall"], default="cpu",
                    help="cost measure: process CPU time (default) or wall time")
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--out", default=default_out('headline'), help="output folder (default out/bench/headline; --out benchmarks/results replaces the committed result)")
     p.add_argument("--name", default="headline", help="output file stem (OUT/NAME.json, .md, .png)")
     p.add_argument("--quick", action="store_true", help="8² and 12², two k at 6² searched here, coarse (CI smoke)")
     a = p.parse_args(argv)

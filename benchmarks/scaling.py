@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse.linalg as spla
-from _common import ROOT, hanging_stiff, ic, machine, series, spmv_seconds, write_outputs
+from _common import ROOT, default_out, hanging_stiff, ic, machine, series, spmv_seconds, write_outputs
 
 from implicit_cloth.backend import resolve as resolve_accelerator
 from implicit_cloth.backend import set_default_accelerator
@@ -493,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trajectory-settle", type=float, nargs="*", default=[0.0, 2.0],
                    help="start the trajectory comparison from rest (0) and/or after this many seconds of a "
                         "tight run (the flat start's buckling amplifies any difference ~1e7 times)")
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--out", default=default_out('scaling'), help="output folder (default out/bench/scaling; --out benchmarks/results replaces the committed result)")
     p.add_argument("--quick", action="store_true", help="tiny sizes and few steps (CI smoke test)")
     p.add_argument("--adaptive", action="store_true",
                    help="keep the default adaptive step control (off here: one solve a step)")
@@ -513,7 +513,7 @@ def main(argv: list[str] | None = None) -> int:
                         "iterations)")
     p.add_argument("--big-memory-gb", type=float, default=12.0,
                    help="address-space limit of each --big-sizes process (a shared machine), GB")
-    p.add_argument("--blender", default=str(ROOT / "benchmarks" / "results" / "vs_blender.json"),
+    p.add_argument("--blender", default=str(ROOT / "benchmarks" / "results" / "vs_blender_fixed.json"),
                    help="vs_blender.py's JSON, whose hanging rows are drawn in the plot (if the file exists)")
     p.add_argument("--replot", type=Path, metavar="JSON",
                    help="run nothing: draw this earlier result's table and plot again (Blender's points from "

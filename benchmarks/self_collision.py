@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import ROOT, ic, machine, write_outputs
+from _common import default_out, ic, machine, write_outputs
 from scipy.spatial import cKDTree
 
 G = 9.81
@@ -243,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dt", type=float, default=1 / 60)
     ap.add_argument("--duration", type=float, default=2.0)
     ap.add_argument("--broad-phase", action="store_true", help="also time the broad phases (ours, ipctk's)")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    ap.add_argument("--out", type=Path, default=Path(default_out('self_collision')), help="output folder (default out/bench/self_collision; --out benchmarks/results replaces the committed result)")
     ap.add_argument("--save", type=Path, default=None,
                     help="also write each run's trajectory.npz and report.json to SAVE/crumple_N (to render it)")
     ap.add_argument("--merge", nargs="+", type=Path, metavar="JSON",
@@ -263,7 +263,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.broad_phase and not args.quick:
         res["broad_phase_size"] = 64
         res["broad_phase"] = broad_phase_rows(64)
-    write_outputs(args.out, "self_collision", res, markdown(res))
+    md = markdown(res)
+    write_outputs(args.out, "self_collision", res, md)
+    print(md)
     return 0
 
 

@@ -96,7 +96,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from _common import FIXED_STEPS, ROOT, STYLE, hanging_stiff, ic, machine, progress, save_png, write_outputs
+from _common import FIXED_STEPS, STYLE, default_out, hanging_stiff, ic, machine, progress, save_png, write_outputs
 
 from implicit_cloth import diagnostics
 
@@ -401,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--time-steps", type=int, default=100, help="steps per timing repeat at dt_max")
     p.add_argument("--repeats", type=int, default=3, help="timing repeats (median)")
     p.add_argument("--seed", type=int, default=0, help="seed of the initial velocity perturbation")
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--out", default=default_out('stability'), help="output folder (default out/bench/stability; --out benchmarks/results replaces the committed result)")
     p.add_argument("--quick", action="store_true", help="8² cloth, two k, short runs, coarse bisection (CI smoke)")
     a = p.parse_args(argv)
     if a.quick:

@@ -24,7 +24,7 @@ import statistics
 import time
 from pathlib import Path
 
-from _common import ROOT, ic, machine, spmv_seconds, write_outputs
+from _common import ROOT, default_out, ic, machine, spmv_seconds, write_outputs
 
 
 def measure(scene: ic.Scene, n: int, dt: float, warmup: int, steps: int) -> dict:
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--preconditioner", choices=["auto", "multigrid", "multigrid_smoothed", "block_jacobi"],
                    default=None,
                    help="override the scene's solver.preconditioner")
-    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    p.add_argument("--out", default=default_out('step_cost'), help="output folder (default out/bench/step_cost; --out benchmarks/results replaces the committed result)")
     p.add_argument("--quick", action="store_true", help="tiny sizes and few steps (CI smoke test)")
     a = p.parse_args(argv)
     if a.quick:

@@ -4,7 +4,7 @@ The scene (SI units; the shared peer scene): a 1 m x 1 m cloth of n x n vertices
 k = 1000 (structural) / 333.3 (shear) / 10 (bend) N/m, damping 0.01 N*s/m, no air drag, gravity, dt = 1/60 s,
 2 s simulated (120 frames). "hanging": the two top corners pinned. "drape": dropped from z = 0.5 m onto a
 sphere r = 0.3 m (friction 0.3, contact distance 0.01 m in all). Blender's cloth is set up from the same SI
-scene by ``blender_cloth.py`` (run inside Blender; its docstring gives the unit mapping); its solver is
+scene by ``_blender_cloth.py`` (run inside Blender; its docstring gives the unit mapping); its solver is
 one thread with CG capped at 100 iterations and a 1e-2 residual (its error is not bounded). Ours: backward
 Euler with the default solver (multigrid PCG, tolerance 1e-3 on the error of dv) and the default step control
 (adaptive: a step that breaks the energy balance or the strain bound is redone), or ``--fixed`` (one
@@ -20,9 +20,12 @@ Usage::
     python benchmarks/vs_blender.py --scenes drape --sizes 32 64 --pairs 1
     python benchmarks/vs_blender.py --fixed --threads 2
     python benchmarks/vs_blender.py --scenes hanging --fixed --preconditioner multigrid_smoothed
+    python benchmarks/vs_blender.py --quick                           # both scenes at 8², one pair
 
 Needs Blender (``apt-get install blender python3-numpy``: Debian's 3.4 and the numpy its Python uses);
-without it the script says so and exits 0. Writes ``OUT/vs_blender.{json,md}``. Never asserts a time.
+without it the script says so on stderr and exits 1, except with ``--quick``, which then runs our side alone
+(the Blender columns "-"). Writes ``OUT/NAME.{json,md}`` (``--name``, default vs_blender; ``--out``, default
+out/bench/vs_blender). Never asserts a time.
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 FPS = 60
 SIZES = {"hanging": [32, 64, 128, 256], "drape": [32, 64, 128]}
+QUICK_SIZE = 8   # --quick: both scenes at 8², one pair
 
 
 def scene(kind: str, n: int, fixed: bool = False, friction_speed: float | None = None,
@@ -139,7 +143,7 @@ def ours(kind: str, n: int, a: argparse.Namespace) -> dict:
 
 
 def blender(exe: str, kind: str, n: int, a: argparse.Namespace) -> dict:
-    cmd = [exe, "-b", "--factory-startup", "-noaudio", "--python", str(HERE / "blender_cloth.py"), "--",
+    cmd = [exe, "-b", "--factory-startup", "-noaudio", "--python", str(HERE / "_blender_cloth.py"), "--",
            "--scene", kind, "--n", str(n)]
     return _result(subprocess.run(cmd, capture_output=True, text=True, timeout=a.timeout))
 
@@ -164,8 +168,9 @@ def markdown(res: dict) -> str:
     mode = "fixed steps (one per frame)" if res["fixed"] else "default step control (adaptive)"
     out = [f"ms per 1/60 s frame, median of {res['pairs']} alternating pairs; ours: tolerance "
            f"{res['tolerance'] or 1e-3:g}, {mode}, {res['threads'] or 1} solver thread(s), preconditioner "
-           f"{_preconditioner_text(res)}; Blender "
-           f"{res['blender_version']}, one thread, CG capped at 100 iterations / 1e-2 residual."
+           f"{_preconditioner_text(res)}; "
+           + ("Blender not installed: our side only." if res["blender_version"] == "not installed" else
+              f"Blender {res['blender_version']}, one thread, CG capped at 100 iterations / 1e-2 residual.")
            + _friction_text(res), "",
            "| scene | grid | ours (ms/frame) | Blender (ms/frame) | ratio ours / Blender | ours: CG its / frame | "
            "ours: solves / frame | ours: rms speed at the end (m/s) | Blender: rms speed (m/s) |",
@@ -176,9 +181,14 @@ def markdown(res: dict) -> str:
         if r["ours_attempted_solves"] > r["ours_solves"]:
             its += f" ({r['ours_attempted_iterations']:.1f} all)"
             solves += f" ({r['ours_attempted_solves']:.2f} all)"
-        out.append(f"| {r['scene']} | {r['n']}² | {r['ours_ms']:.1f} | {r['blender_ms']:.1f} | "
-                   f"**{r['ratio']:.2f}** | {its} | {solves} | "
-                   f"{r['ours_rms_speed']:.3f} | {r['blender_rms_speed']:.3f} |")
+        if r["blender_ms"] is None:                 # Blender not installed (--quick): our side only
+            theirs = "- | - "
+            speed = "-"
+        else:
+            theirs = f"{r['blender_ms']:.1f} | **{r['ratio']:.2f}** "
+            speed = f"{r['blender_rms_speed']:.3f}"
+        out.append(f"| {r['scene']} | {r['n']}² | {r['ours_ms']:.1f} | {theirs}| {its} | {solves} | "
+                   f"{r['ours_rms_speed']:.3f} | {speed} |")
     out += ["", "ours: the accepted substeps' CG iterations and solves; in brackets those of every attempt, the "
             "steps adaptive stepping discarded and redid included (what the frames cost)."]
     return "\n".join(out) + "\n"
@@ -199,40 +209,51 @@ def main(argv: list[str] | None = None) -> int:
                    help="ours, drape: collision.friction_pause, steps (0: the default, none)")
     p.add_argument("--preconditioner", default=None, choices=["multigrid", "multigrid_smoothed"],
                    help="ours: solver.preconditioner (default: the library's, auto)")
-    p.add_argument("--out", default=str(HERE / "results"))
+    p.add_argument("--out", default=str(Path("out") / "bench" / "vs_blender"), help="output folder (default out/bench/vs_blender; --out benchmarks/results replaces the committed result)")
     p.add_argument("--name", default="vs_blender", help="output file stem (default vs_blender)")
+    p.add_argument("--quick", action="store_true",
+                   help=f"both scenes at {QUICK_SIZE}², one pair (without Blender: our side alone)")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
         print("RESULT " + json.dumps(run_ours(a.scenes[0], a.sizes[0], a.fixed, a.tolerance, a.threads,
                                               a.friction_speed, a.friction_pause, a.preconditioner)))
         return 0
+    if a.quick:
+        a.sizes, a.pairs = a.sizes or [QUICK_SIZE], 1
     exe = shutil.which("blender")
     if exe is None:
-        print("vs_blender: Blender is not installed, skipped (apt-get install blender python3-numpy)")
-        return 0
-    rows, version = [], "?"
+        if not a.quick:
+            print("vs_blender: error: Blender is not installed (no 'blender' on PATH; apt-get install blender "
+                  "python3-numpy); --quick runs our side alone", file=sys.stderr)
+            return 1
+        print("vs_blender: Blender is not installed: our side only (apt-get install blender python3-numpy)",
+              flush=True)
+    rows, version = [], "not installed" if exe is None else "?"
+    med = lambda rs, k: statistics.median(r[k] for r in rs) if rs else None  # noqa: E731
     for kind in a.scenes:
         for n in (a.sizes or SIZES[kind]):
             o, b = [], []
             for _ in range(a.pairs):
                 o.append(ours(kind, n, a))
-                b.append(blender(exe, kind, n, a))
+                if exe is not None:
+                    b.append(blender(exe, kind, n, a))
                 print(f"{kind} {n}²: ours {o[-1]['ms_per_frame']:.1f} ms/frame ({o[-1]['iterations_per_frame']:.1f} "
-                      f"its), Blender {b[-1]['ms_per_frame']:.1f}", flush=True)
-            version = b[-1]["peer"]
-            med = lambda rs, k: statistics.median(r[k] for r in rs)  # noqa: E731
+                      f"its)" + (f", Blender {b[-1]['ms_per_frame']:.1f}" if b else ""), flush=True)
+            if b:
+                version = b[-1]["peer"]
             row = {"scene": kind, "n": n, "ours_ms": med(o, "ms_per_frame"), "blender_ms": med(b, "ms_per_frame"),
                    "ours_iterations": med(o, "iterations_per_frame"), "ours_solves": med(o, "solves_per_frame"),
                    "ours_attempted_iterations": med(o, "attempted_iterations_per_frame"),
                    "ours_attempted_solves": med(o, "attempted_solves_per_frame"),
                    "ours_rms_speed": med(o, "rms_speed"), "blender_rms_speed": med(b, "rms_speed"),
                    "ours_runs": o, "blender_runs": b}
-            row["ratio"] = row["ours_ms"] / row["blender_ms"]
+            row["ratio"] = row["ours_ms"] / row["blender_ms"] if b else None
             rows.append(row)
-            print(f"{kind} {n}²: ours {row['ours_ms']:.1f} ms/frame, Blender {row['blender_ms']:.1f} ms/frame, "
-                  f"ratio {row['ratio']:.2f}", flush=True)
-    res = {"benchmark": "vs_blender", "pairs": a.pairs, "fixed": a.fixed, "tolerance": a.tolerance,
+            if b:
+                print(f"{kind} {n}²: ours {row['ours_ms']:.1f} ms/frame, Blender {row['blender_ms']:.1f} ms/frame, "
+                      f"ratio {row['ratio']:.2f}", flush=True)
+    res = {"benchmark": "vs_blender", "quick": a.quick, "pairs": a.pairs, "fixed": a.fixed, "tolerance": a.tolerance,
            "threads": a.threads, "preconditioner": a.preconditioner, "blender_version": version, "rows": rows}
     from _common import friction_used, machine, write_outputs
 

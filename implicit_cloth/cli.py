@@ -126,13 +126,16 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(handler=cmd_run)
 
     bench = sub.add_parser(
-        "bench", help="run a benchmark from benchmarks/ (e.g. scaling, stability, damping, step_cost)",
-        description="Run benchmarks/NAME.py of the source tree (an editable install or a clone). "
-                    "Options after NAME go to the benchmark (e.g. --quick, --out DIR, --sizes 32 64).",
+        "bench", help="run a benchmark of benchmarks/ (bench --help lists them)",
+        description="Run benchmarks/NAME.py of the source tree (an editable install or a clone).\n"
+                    "Options after NAME go to the benchmark (bench NAME --help lists them):\n"
+                    "  --quick    a small case end to end, in seconds\n"
+                    "  --out DIR  where the results go (default out/bench/NAME; the committed results are in\n"
+                    "             benchmarks/results/, written there only with --out benchmarks/results)",
+        epilog=_bench_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    bench.add_argument("name", metavar="NAME", help="benchmark name: the file name in benchmarks/ without .py, "
-                                                    "e.g. scaling, stability, damping")
-    bench.add_argument("args", nargs=argparse.REMAINDER, help="options passed to the benchmark")
+    bench.add_argument("name", metavar="NAME", help="a benchmark below")
+    bench.add_argument("args", nargs=argparse.REMAINDER, help="options passed to the benchmark (e.g. --quick)")
     bench.set_defaults(handler=cmd_bench)
 
     batch = sub.add_parser(
@@ -383,9 +386,35 @@ def benchmarks_dir() -> Path:
 BENCH_ALIASES = {"contact": "contact_energy"}
 
 
+def bench_names(folder: Path | None = None) -> dict[str, str]:
+    """The benchmarks ``bench`` runs, each with the first line of its docstring: ``benchmarks/NAME.py`` (not
+    ``_*.py``, helpers; not the studies and tools in subfolders, run as scripts)."""
+    folder = benchmarks_dir() if folder is None else folder
+    if not folder.is_dir():
+        return {}
+    return {p.stem: _first_doc_line(p) for p in sorted(folder.glob("*.py")) if not p.stem.startswith("_")}
+
+
+def _first_doc_line(path: Path) -> str:
+    """The first line of a script's docstring, read without importing it ("" without one)."""
+    m = re.match(r'(?:\s|#[^\n]*\n)*[rR]?"""\s*([^\n]*?)\s*(?:"""|\n)', path.read_text(encoding="utf-8"))
+    return m.group(1) if m else ""
+
+
+def _bench_epilog() -> str:
+    names = bench_names()
+    if not names:
+        return "No benchmarks/ folder beside the package: run from a clone with pip install -e ."
+    aliases = {v: k for k, v in BENCH_ALIASES.items()}
+    width = max(len(n) for n in names) + 2
+    lines = [f"  {n:<{width}}{d}" + (f" (also: bench {aliases[n]})" if n in aliases else "")
+             for n, d in names.items()]
+    return "benchmarks (NAME):\n" + "\n".join(lines)
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     folder = benchmarks_dir()
-    names = sorted(p.stem for p in folder.glob("*.py") if not p.stem.startswith("_")) if folder.is_dir() else []
+    names = list(bench_names(folder))
     if not names:
         _error(f"no benchmarks/ folder beside the package ({folder}); run from a clone with pip install -e .")
         return EXIT_BAD_INPUT

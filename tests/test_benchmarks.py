@@ -1,11 +1,56 @@
 """Benchmarks' quick (CI smoke) mode writes well-formed outputs. Numbers are not asserted."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
+STUDIES = ROOT / "benchmarks" / "studies"
+
+
+def _results_state() -> dict:
+    return {p.name: (p.stat().st_size, p.stat().st_mtime_ns) for p in (ROOT / "benchmarks" / "results").iterdir()}
+
+
+def test_bench_help_lists_every_benchmark_with_a_line_each(capsys):
+    """``bench --help`` names each benchmark with the first line of its docstring; the studies (a record of a
+    lever measured) and helpers are not listed."""
+    from implicit_cloth.cli import bench_names, main
+
+    names = bench_names()
+    assert {"accuracy_cost", "stability", "damping", "scaling", "contact_energy", "self_collision",
+            "vs_blender"} <= set(names)
+    assert not {"_common", "_blender_cloth", "stopping_rule", "mg_levers", "digests"} & set(names)
+    assert all(len(line) > 20 and "\n" not in line for line in names.values())
+    assert main(["bench", "--help"]) == 0
+    out = capsys.readouterr().out
+    for name, line in names.items():
+        assert f"  {name} " in out and line[:40] in out
+    assert "(also: bench contact)" in out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(__import__("implicit_cloth.cli").cli.bench_names()))
+def test_every_listed_benchmark_runs_quick(name, tmp_path):
+    """Every name ``bench --help`` lists runs with ``--quick`` (a small case end to end, seconds), prints its
+    table and writes it, without ``--out``, to ``out/bench/NAME/`` under the working directory, leaving the
+    committed results as they were."""
+    before = _results_state()
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.run([sys.executable, "-m", "implicit_cloth.cli", "bench", name, "--quick"], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    out = tmp_path / "out" / "bench" / name
+    res = json.loads((out / f"{name}.json").read_text())
+    assert res["benchmark"] == name and res["quick"] is True
+    md = (out / f"{name}.md").read_text()
+    assert "|---" in md and "\n| " in proc.stdout
+    assert _results_state() == before
 
 
 def test_step_cost_quick(tmp_path):
@@ -96,12 +141,11 @@ def test_contact_energy_quick_via_cli(tmp_path):
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
 
 
-def test_rest_reference_quick_via_cli(tmp_path, capsys):
-    """``implicit-cloth bench rest_reference --quick``: a row of the contact table at its step, at the finer
+def test_rest_reference_quick(tmp_path):
+    """``benchmarks/studies/rest_reference.py --quick``: a row of the contact table at its step, at the finer
     steps and with symplectic Euler, each run's speed at every kept frame, and a verdict per row."""
-    from implicit_cloth.cli import main
-
-    assert main(["bench", "rest_reference", "--quick", "--out", str(tmp_path)]) == 0
+    script = str(STUDIES / "rest_reference.py")
+    subprocess.run([sys.executable, script, "--quick", "--out", str(tmp_path)], check=True, capture_output=True)
     res = json.loads((tmp_path / "rest_reference.json").read_text())
     assert res["benchmark"] == "rest_reference" and res["quick"] is True
     runs = res["runs"]
@@ -115,21 +159,30 @@ def test_rest_reference_quick_via_cli(tmp_path, capsys):
     assert "| capsule:8:30 | symplectic Euler, dt 0.0004 s |" in md and "* capsule:8:30: " in md
     assert (tmp_path / "rest_reference.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # a bad row names the option and the value: argparse's usage error, exit code 2
-    assert main(["bench", "rest_reference", "--rows", "torus:8:30", "--out", str(tmp_path)]) == 2
-    err = capsys.readouterr().err
+    bad = subprocess.run([sys.executable, script, "--rows", "torus:8:30", "--out", str(tmp_path)],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2
+    err = bad.stderr
     assert "argument --rows: 'torus:8:30' is not SHAPE:N:1/DT (unknown shape 'torus'" in err
 
 
-def test_vs_blender_skips_without_blender_and_its_worker_reports(tmp_path):
-    """Without Blender on PATH the comparison says so and exits 0; the worker that times our side prints one
-    RESULT record (a small cloth, fixed steps) with the fields the comparison reads."""
-    import os
-
+def test_vs_blender_without_blender_and_its_worker_reports(tmp_path):
+    """Without Blender on PATH the comparison says so on stderr and exits 1, writing nothing, and ``--quick``
+    runs our side alone; the worker that times our side prints one RESULT record (a small cloth, fixed steps)
+    with the fields the comparison reads."""
     env = dict(os.environ, PATH=str(Path(sys.executable).parent))       # no blender there
     script = str(ROOT / "benchmarks" / "vs_blender.py")
-    out = subprocess.run([sys.executable, script, "--sizes", "8", "--out", str(tmp_path)], env=env,
+    proc = subprocess.run([sys.executable, script, "--sizes", "8", "--out", str(tmp_path)], env=env,
+                          capture_output=True, text=True)
+    assert proc.returncode == 1 and "Blender is not installed" in proc.stderr and "--quick" in proc.stderr
+    assert not list(tmp_path.iterdir())
+    # --quick without Blender: our side alone, Blender's columns empty
+    out = subprocess.run([sys.executable, script, "--quick", "--scenes", "hanging", "--out", str(tmp_path)], env=env,
                          check=True, capture_output=True, text=True).stdout
-    assert "Blender is not installed, skipped" in out and not (tmp_path / "vs_blender.json").exists()
+    assert "Blender is not installed: our side only" in out
+    (row,) = json.loads((tmp_path / "vs_blender.json").read_text())["rows"]
+    assert row["n"] == 8 and row["ours_ms"] > 0 and row["blender_ms"] is None and row["ratio"] is None
+    assert "| hanging | 8² |" in out and "| - | - |" in out
     out = subprocess.run([sys.executable, script, "--worker", "--scenes", "drape", "--sizes", "8", "--fixed"],
                          check=True, capture_output=True, text=True).stdout
     res = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
@@ -177,10 +230,10 @@ def test_solver_choice_small_run_writes_rows(tmp_path):
     script's numpy V-cycle and the library's own compiled preconditioners on the same systems (free and in
     contact). The numpy V-cycle (``jacobi``) is the library's plain multigrid written again: the same iterations
     as ``lib_multigrid`` (within one: the compiled products round otherwise)."""
-    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "solver_choice.py"), "--sizes", "12", "--systems",
+    subprocess.run([sys.executable, str(STUDIES / "solver_choice.py"), "--sizes", "12", "--systems",
                     "hanging", "drape", "--levers", "jacobi", "weighed_P", "lib_multigrid", "lib_smoothed",
                     "lib_smoothed_identity", "--out", str(tmp_path)],
-                   check=True, capture_output=True, text=True, cwd=ROOT / "benchmarks")
+                   check=True, capture_output=True, text=True, cwd=STUDIES)
     res = json.loads((tmp_path / "solver_choice.json").read_text())
     rows = [r for r in res["rows"] if r["lever"] == "jacobi"]
     assert len(rows) == 3 and all(r["converged"] and r["true_error"] < 1e-2 for r in rows)
@@ -194,8 +247,8 @@ def test_solver_choice_small_run_writes_rows(tmp_path):
 
 
 def test_soft_modes_quick(tmp_path):
-    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "soft_modes.py"), "--quick", "--out", str(tmp_path)],
-                   check=True, capture_output=True, text=True, cwd=ROOT / "benchmarks")
+    subprocess.run([sys.executable, str(STUDIES / "soft_modes.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True, cwd=STUDIES)
     res = json.loads((tmp_path / "soft_modes_quick.json").read_text())
     assert res["benchmark"] == "soft_modes" and res["quick"] is True
     assert {r["system"] for r in res["rows"]} == {"hanging", "drape"}
@@ -207,8 +260,8 @@ def test_soft_modes_quick(tmp_path):
 
 def test_rigid_coarse_quick(tmp_path):
     """The rigid-mode aggregation study runs its levers on captured systems; each solves to the tolerance."""
-    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "rigid_coarse.py"), "--quick", "--out", str(tmp_path)],
-                   check=True, capture_output=True, text=True, cwd=ROOT / "benchmarks")
+    subprocess.run([sys.executable, str(STUDIES / "rigid_coarse.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True, cwd=STUDIES)
     res = json.loads((tmp_path / "rigid_coarse_quick.json").read_text())
     assert res["benchmark"] == "rigid_coarse" and res["quick"] is True
     assert {r["lever"] for r in res["rows"]} == {"bilinear", "rigid", "rigid + SA below", "SA everywhere"}
@@ -219,11 +272,11 @@ def test_rigid_coarse_quick(tmp_path):
 
 def test_threads_layer_quick(tmp_path):
     """The threading-layer study runs each layer that loads here on one and two threads, in its own processes."""
-    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "threads_layer.py"), "--quick", "--out", str(tmp_path)],
-                   check=True, capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, str(STUDIES / "threads_layer.py"), "--quick", "--out", str(tmp_path)],
+                          check=True, capture_output=True, text=True)
     res = json.loads((tmp_path / "threads_layer.json").read_text())
     assert res["benchmark"] == "threads_layer" and res["quick"] is True
-    assert res["rows"] and {r["n"] for r in res["rows"]} == {32}
+    assert res["rows"] and {r["n"] for r in res["rows"]} == {32}, proc.stderr[-2000:]
     for r in res["rows"]:
         assert r["layer"] in ("tbb", "omp", "omp-spin", "workqueue") and r["ms_1"] > 0 and r["ms_2"] > 0
         assert r["same_numbers"]                     # two threads give one thread's positions to the last bit
@@ -231,10 +284,10 @@ def test_threads_layer_quick(tmp_path):
 
 
 def test_drape_phases_quick(tmp_path):
-    """``benchmarks/drape_phases.py --quick``: the 16² drape's frames split into the fall and the landing, each
+    """``benchmarks/studies/drape_phases.py --quick``: the 16² drape's frames split into the fall and the landing, each
     frame's figures the simulator's own (solves at least its collider's rounds, one round a frame in the fall)."""
-    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "drape_phases.py"), "--quick", "--out", str(tmp_path)],
-                   check=True, capture_output=True, text=True, cwd=ROOT / "benchmarks")
+    subprocess.run([sys.executable, str(STUDIES / "drape_phases.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True, cwd=STUDIES)
     res = json.loads((tmp_path / "drape_phases_quick.json").read_text())
     assert res["benchmark"] == "drape_phases" and res["quick"] is True
     (r,) = res["rows"]
@@ -244,3 +297,30 @@ def test_drape_phases_quick(tmp_path):
     assert sum(p["frames"] for p in ph.values()) == 39
     assert ph["fall"]["rounds"] == 1.0 and ph["landing"]["solves"] > ph["fall"]["solves"]
     assert (tmp_path / "drape_phases_quick.md").read_text().count("\n| 16² |") == 4
+
+
+def test_stopping_rule_quick(tmp_path):
+    """The stopping-rule study captures real steps' systems (the model's SystemMatrix, copied as its CSR) and
+    replays CG on them: every scene sampled, each captured system solved, the rules' errors measured."""
+    subprocess.run([sys.executable, str(STUDIES / "stopping_rule.py"), "--quick", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    res = json.loads((tmp_path / "stopping_rule.json").read_text())
+    assert res["benchmark"] == "stopping_rule" and res["quick"] is True
+    assert len(res["scenes"]) == 3 and res["rows"]
+    assert "| drape on sphere |" in (tmp_path / "stopping_rule.md").read_text()
+
+
+def test_mg_levers_and_preconditioner_peer_run_small(tmp_path):
+    """The two studies without a quick mode still run, at a small size: the numpy V-cycle solves a captured
+    system to its tolerance; the peer scenes run with both preconditioners."""
+    subprocess.run([sys.executable, str(STUDIES / "mg_levers.py"), "--sizes", "16", "--steps", "2", "--variants",
+                    "jacobi", "--out", str(tmp_path)], check=True, capture_output=True, text=True)
+    (row,) = json.loads((tmp_path / "mg_levers.json").read_text())["rows"]
+    assert row["variant"] == "jacobi" and row["converged"] and row["true_error"] < 1e-2
+    subprocess.run([sys.executable, str(STUDIES / "preconditioner_peer.py"), "--sizes", "8", "--out", str(tmp_path)],
+                   check=True, capture_output=True, text=True)
+    rows = json.loads((tmp_path / "preconditioner_peer.json").read_text())["rows"]
+    assert {(r["scene"], r["fixed_steps"], r["preconditioner"]) for r in rows} == {
+        (s, f, pc) for s, f in (("hanging", True), ("hanging", False), ("drape", False))
+        for pc in ("multigrid", "multigrid_smoothed")}
+    assert all(r["iterations_per_frame"] >= 1 and r["ms_per_frame"] > 0 for r in rows)

@@ -169,7 +169,7 @@ def test_smoothed_numba_path_is_the_numpy_iteration():
 @pytest.mark.parametrize("accelerator", ["numpy", NUMBA])
 def test_smoothed_multigrid_saves_iterations_on_a_wrinkled_cloth(accelerator):
     """The stiff cloth after 40 steps hangs in folds: the smoothed coarse space follows them (the lever study,
-    benchmarks/mg_levers.py, measured about half the iterations at 32²-256²); at least a quarter fewer here."""
+    benchmarks/studies/mg_levers.py, measured about half the iterations at 32²-256²); at least a quarter fewer here."""
     sim = ic.Simulator(_scene(res=(40, 40)), dt=H)
     m, A, b = _system(sim, steps=40)
     filt = Filter(m.n, m.pinned)

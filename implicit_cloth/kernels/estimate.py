@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 #: Factor on the extrapolated error of the current iterate, from measurements (see
-#: :func:`implicit_cloth.solvers.pcg.filtered_pcg`, Notes, and ``benchmarks/stopping_rule.py``).
+#: :func:`implicit_cloth.solvers.pcg.filtered_pcg`, Notes, and ``benchmarks/studies/stopping_rule.py``).
 ESTIMATE_SAFETY = 2.0
 
 

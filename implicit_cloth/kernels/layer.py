@@ -2,7 +2,7 @@
 
 The kernels' parallel regions are short: one level's pass of a V-cycle takes 0.05-1.3 ms at 256², and a
 CG iteration opens about twenty of them. Measured on the 2-core test machine (2026-12-06, numba 0.68; ``python
-benchmarks/threads_layer.py``): under TBB's layer (numba's first choice when ``libtbb`` is installed, as
+benchmarks/studies/threads_layer.py``): under TBB's layer (numba's first choice when ``libtbb`` is installed, as
 Blender's Debian package installs it) a second thread joined a 0.15 ms region too late to take any of its
 work, so short regions ran no faster on two threads than on one; under OpenMP's the same region ran twice
 as fast. So, unless the user chose a layer

@@ -167,7 +167,7 @@ class _Level:
 #: Damping ``w`` of the prolongation smoothing of ``"multigrid_smoothed"`` (:class:`SmoothedProlongation`): fixed,
 #: since a power estimate of the spectral radius of ``D^-1 A`` (1.8-2.6 on the stiff hanging cloth's levels,
 #: where ``4 / (3 rho)`` is 0.5-0.7) costs ten matrix passes a level a step and gave the same iterations
-#: (benchmarks/mg_levers.py, ``spr_sum`` against ``spr_sum_w07``).
+#: (benchmarks/studies/mg_levers.py, ``spr_sum`` against ``spr_sum_w07``).
 SMOOTH_P_OMEGA = 0.7
 
 

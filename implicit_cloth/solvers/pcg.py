@@ -192,7 +192,7 @@ def filtered_pcg(A, b: np.ndarray, z: np.ndarray, filt: Filter, precond, tol: fl
     a steady rate and steady ``pw``. Real CG is not steady (its rate slows as the
     error concentrates in soft modes, ``pw`` grows with it), and the pure
     extrapolation under-reads: on the hanging stiff cloths (k = 1e3, 1e4 N/m;
-    32²-128²) and the drape on a sphere of ``benchmarks/stopping_rule.py``, over
+    32²-128²) and the drape on a sphere of ``benchmarks/studies/stopping_rule.py``, over
     the iterates within 2 % of the solution, by more than 1.5x on 1 % of them and
     by 2.3x at worst (3x on the 24² test systems, early in a solve). So the
     estimate is multiplied by ``ESTIMATE_SAFETY = 2``, the smallest of 1.5, 1.75
