@@ -153,9 +153,15 @@ class Simulator:
             from .collision import Collider
 
             self.collider = Collider(scene.data["obstacles"], scene.data["collision"], self.model)
+        #: self-contact as a barrier in the step's solve (``method = "barrier"`` and ``self_collision = true``)
+        self.cloth_contact: Any = None
+        if self.barrier and self_collision(scene.data):
+            from .contact.cloth import ClothContact
+
+            self.cloth_contact = ClothContact(self.model, scene.data["collision"], self.dt)
         #: self-collision (``[collision] self_collision = true``), else None: its code is imported only then
         self.self_collider: Any = None
-        if self_collision(scene.data):
+        if self_collision(scene.data) and not self.barrier:
             from .selfcontact import SelfCollider
 
             self.self_collider = SelfCollider(self.model, scene.data["collision"])
@@ -170,7 +176,7 @@ class Simulator:
         self._energy_growth = float(sim["adaptive"]["max_energy_growth"])
         #: whether every step is checked (adaptive stepping, implicit methods, obstacles); else kept frames only
         self._checks_steps = (self.adaptive is not None or self.integrator.implicit or self.collider is not None
-                               or self.self_collider is not None)
+                               or self.self_collider is not None or self.cloth_contact is not None)
         #: the strain no step may leave: strain limiting's ``max_strain`` if declared, else adaptive's
         self.strain_bound = float(sim["strain_limit"]["max_strain"] if "strain_limit" in sim
                                   else sim["adaptive"]["max_strain"])
@@ -281,7 +287,7 @@ class Simulator:
         """
         col = self.collider
         pins = self._pins if pins is None else pins
-        if col is not None and self.barrier:
+        if self.barrier and (col is not None or self.cloth_contact is not None):
             return self._barrier_step(state, h, pins)
         if col is not None and self.integrator.implicit:
             return col.step(self.integrator, state, h, pins, self.strain_limiter, newton)
@@ -303,23 +309,26 @@ class Simulator:
         the energy balance read)."""
         from .collision.context import CollisionInfo
 
-        col = self.collider
+        col, cloth = self.collider, self.cloth_contact
         integ = self.integrator
         assert isinstance(integ, ImplicitIntegrator)
         t0 = time.perf_counter()
-        contacts = col.detect(state.x)
-        terms = col.terms(contacts)
+        contacts = col.detect(state.x) if col is not None else None
+        terms = col.terms(contacts) if col is not None else []
+        if cloth is not None:
+            terms.append(cloth.term(state.x))
         t_detect = time.perf_counter() - t0
         new, info = integ.minimize(state, h, terms, pins)
         t0 = time.perf_counter()
-        barrier = terms[0]
         if np.all(np.isfinite(new.x)):
-            info.contact_work = barrier.energy(state.x) - barrier.energy(new.x)
-        depth = max((float(col.depths(k, new.x, new.t)[col.free].max(initial=0.0))
-                     for k in range(len(col.obstacles))), default=0.0)
-        info.collision = CollisionInfo(contacts=len(contacts), resting=barrier.active(new.x), rounds=1,
-                                       max_penetration=depth, solves=info.solves,
-                                       t_collision=t_detect + time.perf_counter() - t0)
+            barriers = [f for f in terms if f.conservative]
+            info.contact_work = sum(f.energy(state.x) - f.energy(new.x) for f in barriers)
+        if col is not None and contacts is not None:
+            depth = max((float(col.depths(k, new.x, new.t)[col.free].max(initial=0.0))
+                         for k in range(len(col.obstacles))), default=0.0)
+            info.collision = CollisionInfo(contacts=len(contacts), resting=terms[0].active(new.x), rounds=1,
+                                           max_penetration=depth, solves=info.solves,
+                                           t_collision=t_detect + time.perf_counter() - t0)
         return new, info
 
     def _implicit_step(self, state: State, h: float, pins: Constraints, newton: int | None) -> tuple[State, Any]:
@@ -465,9 +474,6 @@ def _check_barrier(data: Mapping[str, Any], implicit: bool) -> None:
     if not implicit:
         raise SceneError(f"collision.method: 'barrier' minimises the implicit step's potential; it needs an "
                          f"implicit integrator (backward_euler, bdf2), got {data['simulation']['integrator']!r}")
-    if self_collision(data):
-        raise SceneError("collision.method: 'barrier' handles obstacles only so far; self_collision needs "
-                         "method = 'rounds', got 'barrier'")
     if "strain_limit" in data["simulation"]:
         raise SceneError("collision.method: 'barrier' does not apply simulation.strain_limit; use method = "
                          "'rounds', got 'barrier'")

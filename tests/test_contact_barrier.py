@@ -192,7 +192,7 @@ def test_numpy_and_numba_agree_on_a_drape(monkeypatch):
 @pytest.mark.parametrize("change, message", [
     (lambda d: d["simulation"].update(integrator="symplectic_euler"),
      "collision.method: 'barrier' minimises the implicit step's potential; it needs an implicit integrator"),
-    (lambda d: d["collision"].update(self_collision=True), "self_collision needs method = 'rounds'"),
+    (lambda d: d["simulation"].update(strain_limit={"max_strain": 0.1}), "does not apply simulation.strain_limit"),
     (lambda d: d["obstacles"][0].update(velocity=[0.0, 0.0, 1.0]), "obstacles[0]: collision.method = 'barrier' "
                                                                     "supports primitive obstacles that do not move"),
     (lambda d: d["collision"].update(friction_speed=0.0), "collision.friction_speed: the barrier method's friction"),
@@ -207,3 +207,76 @@ def test_what_the_barrier_method_does_not_take_is_a_clear_error(change, message)
     with pytest.raises(SceneError) as e:
         ic.Simulator(d)
     assert message in str(e.value)
+
+
+# --------------------------------------------------------------------------- the cloth against itself
+def _crossings(x, faces):
+    from test_self_collision import crossings
+
+    return crossings(x, faces)
+
+
+def _stack(n=10, gap=0.02, method="barrier"):
+    """Two sheets, one above the other, dropped onto a plane: [[cloth]] pieces."""
+    def sheet(z):
+        return {"size": [0.4, 0.4], "resolution": [n, n], "mass": 0.05, "center": [0.0, 0.0, z], "plane": "xy",
+                "springs": {"structural": {"stiffness": 300.0, "damping": 0.05},
+                            "shear": {"stiffness": 30.0, "damping": 0.01},
+                            "bend": {"stiffness": 0.5, "damping": 0.001}}}
+    return {"simulation": {"integrator": "backward_euler", "dt": 1 / 60, "duration": 1.0, "frame_rate": 60},
+            "cloth": [sheet(0.05), sheet(0.05 + gap)],
+            "effects": {"gravity": [0.0, 0.0, -9.81]},
+            "obstacles": [{"shape": "sphere", "center": [0.0, 0.0, -0.2], "radius": 0.2, "friction": 0.3}],
+            "collision": {"method": method, "thickness": TH, "self_collision": True}}
+
+
+def test_two_sheets_dropped_on_a_sphere_keep_their_order_and_never_cross():
+    """Two 10² sheets 2 cm apart dropped on a sphere, dt 1/60: no edge through a triangle at any step (the
+    segment-triangle judge of test_self_collision), the upper sheet stays above the lower one along every
+    vertical line through both, and they rest at least half the thickness apart."""
+    sim = ic.Simulator(_stack())
+    faces = sim.model.faces
+    a, b = sim.model.pieces
+    for _ in range(45):
+        sim.step(1)
+        x = sim.state.x
+        assert _crossings(x, faces) == 0
+    lower, upper = x[a[0]:a[1]], x[b[0]:b[1]]
+    # the same grid points of both sheets (the pieces are alike): the upper one above
+    assert np.all(upper[:, 2] > lower[:, 2])
+    term = sim.cloth_contact.term(x)
+    assert term.distance(x) >= TH / 2
+    assert "energy" not in sim.health.events
+
+
+def test_the_self_barrier_derivatives():
+    """The self-contact barrier (the IPC Toolkit's potential) through the Force interface: gradient against
+    energy by the Taylor remainder's order; its projected Hessian positive semidefinite and assembled whole."""
+    pytest.importorskip("ipctk")
+    rng = np.random.default_rng(5)
+    sim = ic.Simulator(_stack(n=4, gap=TH * 0.8))
+    x = sim.model.rest_positions.copy()
+    x += 1e-4 * rng.standard_normal(x.shape)
+    term = sim.cloth_contact.term(x)
+    assert term.pairs_within_reach(x) > 0
+    d = 1e-4 * rng.standard_normal(x.shape)
+    g = np.zeros_like(x)
+    term.gradient(x, 0.0, g)
+    u0 = term.energy(x)
+    r = np.array([abs(term.energy(x + e * d) - u0 - e * np.vdot(g, d)) for e in EPS_SELF])
+    assert np.log2(r[-2] / r[-1]) == pytest.approx(2.0, abs=0.1)
+    # its Hessian, projected pair by pair, is symmetric positive semidefinite, and linearize splits c_x times it
+    # into the system's diagonal blocks and the coupling the solve adds to its product, losing nothing
+    H = term.hessian(x).toarray()
+    assert np.allclose(H, H.T, atol=1e-12 * np.abs(H).max())
+    assert np.linalg.eigvalsh(H).min() >= -1e-9 * np.abs(H).max()
+    from implicit_cloth.assembly import SystemMatrix
+
+    sysm = SystemMatrix(len(x), np.zeros((0, 2), dtype=np.int64), "numpy")
+    sysm.reset_diagonal(np.zeros(len(x)))
+    term.linearize(x, x, 0.0, 0.25, 0.5, None, sysm, None, np.zeros_like(x))
+    assembled = sysm.finalize().toarray() + term.coupling.toarray()
+    assert np.allclose(assembled, 0.25 * H, atol=1e-12 * np.abs(H).max())
+
+
+EPS_SELF = 1e-2 * 0.5 ** np.arange(6)

@@ -257,6 +257,12 @@ class ObstacleBarrier:
             s *= float(cut[1].min())
         return s
 
+    def filter_move(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+        """``dx`` with each vertex's move cut to what its path allows (:meth:`fractions`); ``dx`` itself when
+        nothing is cut."""
+        s = self.fractions(x, dx)
+        return dx * s[:, None] if np.any(s < 1.0) else dx
+
     def _edge_fractions(self, x: np.ndarray, dx: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """The edges whose gap the move ``dx`` would close by more than :data:`SAFE`, and the fraction of the
         move each allows (conservative advancement); None when every edge passes."""

@@ -52,8 +52,8 @@ MINIMIZE_ITERATIONS = 30
 #: (32² drape on a sphere at dt 1/60 over 1.5 s: 4.8 solves a step at 0.1 and 1e-3 m/s, 7.8 at 1e-2 and 1e-3).
 MINIMIZE_TOLERANCE = 0.1
 MINIMIZE_FLOOR = 1e-3
-#: Checks of a uniformly scaled Newton direction against the contacts' path bounds before it is given up.
-UNIFORM_PASSES = 8
+#: Passes of the contacts' safe-move filters over a Newton direction before it is scaled down as a whole.
+FILTER_PASSES = 3
 #: Halvings of a line search before the iteration gives up.
 LINE_SEARCH_HALVINGS = 30
 
@@ -611,9 +611,11 @@ class ImplicitIntegrator(Integrator):
             for term in terms:
                 term.linearize(x, v, t1, scheme.c_x, cv, None, sysm, None, f)
             sysm.finalize_lazy()
+            coupling = [term.coupling for term in terms if getattr(term, "coupling", None) is not None]
             info.t_assembly += time.perf_counter() - t0
             R = M * (v - scheme.v_hat) - cv * f
-            d = self._solve(A, -R, np.zeros_like(v), filt, info, tolerance=max(self.tolerance, NEWTON_FORCING))
+            d = self._solve(A, -R, np.zeros_like(v), filt, info, tolerance=max(self.tolerance, NEWTON_FORCING),
+                            coupling=coupling)
             slope = float(np.dot(filt.apply(R.copy().reshape(-1)), d.reshape(-1)))
             if not np.isfinite(slope) or slope >= 0.0:
                 break
@@ -626,18 +628,30 @@ class ImplicitIntegrator(Integrator):
             cut = bounds.cut(x, d)
             if cut is not d:
                 # the direction with each vertex cut to what its path allows, if it still descends; else the
-                # whole direction scaled down until every path allows it (a prefix of each vertex's path)
+                # Newton direction of the other vertices, those held (a descent direction), scaled down until
+                # every path allows it: held, a vertex against a contact no longer holds the others back
                 slope_t = float(np.dot(filt.apply(R.copy().reshape(-1)), cut.reshape(-1)))
                 if np.isfinite(slope_t) and slope_t < 0.0:
                     d, slope = cut, slope_t
                 else:
+                    # held: the vertices cut more than the move as a whole was scaled (a global bound scales all)
+                    norm = np.sqrt(np.einsum("ij,ij->i", d, d))
+                    ratio = np.sqrt(np.einsum("ij,ij->i", cut, cut)) / np.maximum(norm, 1e-300)
+                    held = np.flatnonzero((norm > 0) & (ratio < (1.0 - 1e-9) * float(ratio.max())))
+                    sub = Filter(self.model.n, np.union1d(c.pinned, held))
+                    d = self._solve(A, -R, np.zeros_like(v), sub, info,
+                                    tolerance=max(self.tolerance, NEWTON_FORCING), coupling=coupling)
+                    slope = float(np.dot(sub.apply(R.copy().reshape(-1)), d.reshape(-1)))
+                    if not np.isfinite(slope) or slope >= 0.0:
+                        break
                     a = bounds.uniform(x, d)
             a = _armijo(phi, v, d, a, slope)
             if a <= 0.0:
                 break
             v = v + a * d
             info.newton_iterations += 1
-            step = a * np.sqrt(float(np.einsum("ij,ij->", M * d, d)))
+            # converged when the Newton correction itself is small, not the step a contact's bound cut it to
+            step = np.sqrt(float(np.einsum("ij,ij->", M * d, d)))
             change = np.sqrt(float(np.einsum("ij,ij->", M * (v - state.v), v - state.v)))
             if step <= max(MINIMIZE_TOLERANCE * change, floor):
                 break
@@ -665,7 +679,7 @@ class ImplicitIntegrator(Integrator):
 
     def _solve(self, A, b: np.ndarray, z: np.ndarray, filt: Filter, info: StepInfo,
                guess: np.ndarray | None = None, tolerance: float | None = None,
-               diagonal_only: bool = False) -> np.ndarray:
+               diagonal_only: bool = False, coupling: list[Any] | None = None) -> np.ndarray:
         """Solve ``A dv = b`` with the constrained components of ``dv`` prescribed (``z``) through ``filt``.
 
         ``diagonal_only``: only diagonal blocks changed since the last solve, with the same filter (the friction's
@@ -678,11 +692,15 @@ class ImplicitIntegrator(Integrator):
             self.precond.setup(self.model.system, filt)
         t1 = time.perf_counter()
 
+        op, compiled = A, None
+        if coupling:   # couplings off the system's pattern (self-contact): the product adds them, in numpy
+            op, compiled = _Coupled(A, coupling), False
+
         def solve():
-            return filtered_pcg(A, b.reshape(-1), z.reshape(-1), filt, self.precond,
+            return filtered_pcg(op, b.reshape(-1), z.reshape(-1), filt, self.precond,
                                 self.tolerance if tolerance is None else tolerance, self.max_iterations,
                                 mass=self._mass3, rule=self.precond.stopping_rule,
-                                guess=None if guess is None else guess.reshape(-1))
+                                guess=None if guess is None else guess.reshape(-1), compiled=compiled)
         dv, res = solve()
         protect = getattr(self.precond, "protect", None)
         if not res.converged and res.iterations < self.max_iterations and protect is not None and protect():
@@ -702,35 +720,58 @@ class ImplicitIntegrator(Integrator):
 
 
 class _PathBounds:
-    """The path bounds of the force terms that have them (``fractions(x, dx)``: the fraction of each vertex's
-    move ``dx`` its path may take), applied to a Newton direction in velocities (moves ``c_v d``)."""
+    """The safe-move filters of the force terms that have them (``filter_move(x, dx)``: each vertex's move
+    ``dx`` cut to what keeps it off every contact), applied to a Newton direction in velocities (moves
+    ``c_v d``), one after the other until none cuts further."""
 
     def __init__(self, terms: list[Any], c_v: float) -> None:
-        self.terms = [f for f in terms if hasattr(f, "fractions")]
+        self.terms = [f for f in terms if hasattr(f, "filter_move")]
         self.c_v = c_v
 
-    def fractions(self, x: np.ndarray, d: np.ndarray) -> np.ndarray:
-        s = np.ones(len(d))
-        for f in self.terms:
-            np.minimum(s, f.fractions(x, self.c_v * d), out=s)
-        return s
-
     def cut(self, x: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """``d`` with each vertex's part cut to what its path from ``x`` allows (``d`` itself if nothing is)."""
+        """``d`` with each vertex's part cut to what every filter allows from ``x`` (``d`` itself if none cuts);
+        after :data:`FILTER_PASSES` passes that still cut, scaled down as a whole instead."""
         if not self.terms:
             return d
-        s = self.fractions(x, d)
-        return d * s[:, None] if np.any(s < 1.0) else d
+        move = self.c_v * d
+        cut = False
+        for _ in range(FILTER_PASSES):
+            changed = False
+            for f in self.terms:
+                new = f.filter_move(x, move)
+                if new is not move:
+                    move, changed = new, True
+            if not changed:
+                return move / self.c_v if cut else d
+            cut = True
+        return self.uniform(x, d) * d
+
+    def allowed(self, x: np.ndarray, d: np.ndarray) -> bool:
+        move = self.c_v * d
+        return all(f.filter_move(x, move) is move for f in self.terms)
 
     def uniform(self, x: np.ndarray, d: np.ndarray) -> float:
-        """The largest ``a <= 1`` found (and checked) with ``a d`` allowed to every path; 0 if none is."""
+        """The largest ``a = 2^-k <= 1`` found with ``a d`` allowed to every vertex whole; 0 if none is."""
         a = 1.0
-        for _ in range(UNIFORM_PASSES):
-            low = float(self.fractions(x, a * d).min()) if self.terms else 1.0
-            if low >= 1.0:
+        for _ in range(LINE_SEARCH_HALVINGS):
+            if not self.terms or self.allowed(x, a * d):
                 return a
-            a *= low
+            a *= 0.5
         return 0.0
+
+
+class _Coupled:
+    """``A + sum C_k``: the system matrix and couplings off its pattern (anything with ``@``)."""
+
+    def __init__(self, A: Any, coupling: list[Any]) -> None:
+        self.A, self.coupling = A, coupling
+        self.shape = A.shape
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        y = self.A @ x
+        for C in self.coupling:
+            y = y + C @ x
+        return y
 
 
 def _armijo(phi: Callable[[np.ndarray], float], v: np.ndarray, d: np.ndarray, a: float, slope: float) -> float:

@@ -1,0 +1,184 @@
+"""The cloth against itself as a term of the step's incremental potential (``collision.method = "barrier"`` with
+``self_collision = true``), on the IPC Toolkit (``ipctk``: Li et al. 2020's barrier over point-triangle and
+edge-edge distances, and Offset Geometric Contact's per-vertex trust regions, Chen et al. 2025).
+
+* :class:`ClothBarrier` (conservative): IPC's barrier on every pair of non-adjacent primitives (point-triangle,
+  edge-edge; within a piece and between pieces) nearer than ``xi + dhat``: infinite at ``xi`` (half the
+  thickness), zero beyond (``dhat``, the other half), so layers rest between half the thickness and the
+  thickness apart and never nearer. Its stiffness is the mean vertex mass over ``dt^2 dhat^2`` (the toolkit's
+  barrier is on squared distances). Its Hessian
+  (projected to positive semidefinite pair by pair) couples vertices the springs' pattern does not: its
+  diagonal blocks go into the system (the multigrid sees them), the rest into the solve's product
+  (:attr:`ClothBarrier.coupling`).
+* :meth:`ClothBarrier.filter_move`: each vertex's move cut to the distance it may move on its own without any
+  pair coming within ``xi`` (OGC's per-vertex bound, the IPC Toolkit's safe distances), so no iterate crosses
+  the cloth, without CCD, and a pair in contact does not hold the rest of the cloth back. (Tried first and
+  left: ``ipctk.ogc``'s planar divide-and-truncate removed every move, however small, of a few hundred vertices
+  of a 32² sheet falling onto a rod; the global CCD step, one pair in contact stopped the whole sheet.)
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+#: A vertex moves at most this fraction of its safe distance in one Newton iteration.
+SAFE = 0.9
+
+
+class ClothBarrier:
+    """The cloth's self-contact barrier for one step (a :class:`~implicit_cloth.forces.Force`), its trust
+    regions centred at the step's start ``x0``."""
+
+    name = "self_contact"
+    conservative = True
+    dissipative = False
+    elastic = False
+
+    def __init__(self, mesh: Any, potential: Any, xi: float, dhat: float, x0: np.ndarray) -> None:
+        import ipctk
+
+        self._ipc = ipctk
+        self.mesh, self.potential = mesh, potential
+        self.xi, self.dhat = float(xi), float(dhat)
+        #: the off-diagonal part of the last Hessian (c_x scaled), for the solve's product; None if none
+        self.coupling: sp.csr_matrix | None = None
+        self._key: tuple[int, bytes] | None = None
+        self._collisions: Any = None
+        #: Newton iterations whose barrier Hessian was not finite and was left out
+        self.skipped = 0
+
+    def _collisions_at(self, x: np.ndarray) -> Any:
+        """The pairs within reach at ``x`` (cached for the last ``x``)."""
+        key = (x.shape[0], x.tobytes())
+        if self._key != key:
+            c = self._ipc.NormalCollisions()
+            c.build(self.mesh, _f(x), self.dhat, self.xi)
+            self._collisions, self._key = c, key
+        return self._collisions
+
+    def pairs_within_reach(self, x: np.ndarray) -> int:
+        return len(self._collisions_at(x))
+
+    def distance(self, x: np.ndarray) -> float:
+        """The least distance between non-adjacent primitives within reach at ``x`` (inf if none), m."""
+        c = self._collisions_at(x)
+        return float(np.sqrt(c.compute_minimum_distance(self.mesh, _f(x)))) if len(c) else np.inf
+
+    # ------------------------------------------------------------------ the Force interface
+    def energy(self, x: np.ndarray) -> float:
+        c = self._collisions_at(x)
+        return float(self.potential(c, self.mesh, _f(x))) if len(c) else 0.0
+
+    def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
+        c = self._collisions_at(x)
+        if len(c):
+            out += np.asarray(self.potential.gradient(c, self.mesh, _f(x))).reshape(-1, 3)
+
+    def dissipation(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        return 0.0
+
+    def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
+        g = np.zeros_like(out)
+        self.gradient(x, t, g)
+        out -= g
+
+    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        return 0.0
+
+    def pairs(self) -> np.ndarray:
+        return np.zeros((0, 2), dtype=np.int64)
+
+    def bind(self, system: Any) -> None:
+        pass
+
+    def hessian(self, x: np.ndarray) -> sp.csr_matrix:
+        """The barrier's Hessian at ``x``, each pair's projected to positive semidefinite, (3N, 3N)."""
+        c = self._collisions_at(x)
+        n3 = 3 * len(x)
+        if not len(c):
+            return sp.csr_matrix((n3, n3))
+        try:
+            H = sp.csr_matrix(self.potential.hessian(c, self.mesh, _f(x), self._ipc.PSDProjectionMethod.CLAMP))
+        except RuntimeError:
+            H = None
+        if H is None or not np.all(np.isfinite(H.data)):
+            # a pair's Hessian not finite (nearly parallel edges): this iteration goes without the barrier's
+            # curvature (a slower iteration, still a descent direction; its line search keeps the energy)
+            self.skipped += 1
+            return sp.csr_matrix((n3, n3))
+        return H
+
+    def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
+        g = np.zeros_like(f)
+        self.gradient(x, t, g)
+        f -= g
+        H = self.hessian(x)
+        self.coupling = None
+        if not H.nnz:
+            return
+        H = H * c_x
+        coo = H.tocoo()
+        same = (coo.row // 3) == (coo.col // 3)
+        blocks = np.zeros((len(x), 3, 3))
+        np.add.at(blocks, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
+        touched = np.flatnonzero(np.any(blocks != 0.0, axis=(1, 2)))
+        np.add.at(system.blocks, system.diag_index[touched], blocks[touched])
+        off = ~same
+        if np.any(off):
+            self.coupling = sp.csr_matrix((coo.data[off], (coo.row[off], coo.col[off])), shape=H.shape)
+        if kw is not None and w is not None:
+            kw -= (H @ w.reshape(-1)).reshape(-1, 3) / c_x
+
+    # ------------------------------------------------------------------ safe moves
+    def filter_move(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+        """``dx`` with each vertex's move cut to :data:`SAFE` of the distance it may move on its own without any
+        pair of non-adjacent primitives coming within ``xi`` (the IPC Toolkit's per-vertex safe distances,
+        Offset Geometric Contact's bound: a vertex far from the rest of the cloth is not held back by a pair
+        in contact elsewhere); ``dx`` itself when nothing is cut."""
+        move = np.sqrt(np.einsum("ij,ij->i", dx, dx))
+        reach = float(move.max(initial=0.0))
+        if reach <= 0.0:
+            return dx
+        xf = _f(x)
+        cand = self._ipc.Candidates()
+        # pairs within the offset and twice the longest move; the safe distances are capped there (at twice
+        # the move less the offset: a vertex with nothing near is never cut)
+        inflation = 2.0 * reach + self.xi
+        cand.build(self.mesh, xf, inflation)
+        safe = np.asarray(cand.compute_per_vertex_safe_distances(self.mesh, xf, inflation, self.xi)).reshape(-1)
+        s = np.minimum(1.0, SAFE * safe / np.maximum(move, 1e-300))
+        if np.all(s >= 1.0):
+            return dx
+        return dx * s[:, None]
+
+
+def _f(x: np.ndarray) -> np.ndarray:
+    return np.asfortranarray(x, dtype=float)
+
+
+class ClothContact:
+    """The self-contact stage of ``collision.method = "barrier"``: the collision mesh (every piece; adjacent
+    primitives are never a pair) and the barrier, built once; :meth:`term` makes a step's term."""
+
+    def __init__(self, model: Any, settings: dict[str, Any], dt: float) -> None:
+        try:
+            import ipctk
+        except ImportError:  # pragma: no cover - the test extra installs it
+            from ..errors import SceneError
+
+            raise SceneError("collision.self_collision: the barrier method's self-contact needs the IPC Toolkit "
+                             "(pip install 'implicit_cloth[ipc]'), got method = 'barrier'") from None
+        faces = np.asarray(model.faces, dtype=np.int64)
+        self.mesh = ipctk.CollisionMesh(np.asfortranarray(model.rest_positions), ipctk.edges(faces), faces)
+        self.thickness = float(settings["thickness"])
+        self.xi = self.dhat = 0.5 * self.thickness
+        # the toolkit's barrier is IPC's on squared distances (~dhat^4 where the obstacles' is ~dhat^2): the mean
+        # vertex mass over dt^2, over dhat^2, brings its force to the obstacles' at the same gap
+        self.kappa = float(np.mean(model.masses)) / (float(dt) ** 2 * self.dhat ** 2)
+        self.potential = ipctk.BarrierPotential(self.dhat, self.kappa)
+
+    def term(self, x0: np.ndarray) -> ClothBarrier:
+        return ClothBarrier(self.mesh, self.potential, self.xi, self.dhat, x0)
