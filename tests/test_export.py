@@ -308,3 +308,28 @@ def test_blender_imports_the_exports_headless(moving_run, tmp_path):
         assert r.get("obstacle_max_error_m", 0.0) < 1e-5, r
     if "error" in result["usd"]:
         pytest.skip(f"USD not checked in Blender: {result['usd']['error']}")
+
+
+@pytest.mark.slow
+def test_blender_plays_the_pc2_of_uneven_steps_at_the_frame_times(uneven_run, tmp_path):
+    """In Blender's Mesh Cache modifier, the scene at the run's frame rate shows frame f of the hanging example's
+    time line at the scene frame of its time (``round(times[f] * fps)``)."""
+    cmd = _blender()
+    if cmd is None:
+        pytest.skip("Blender is not installed (apt-get install blender) and IMPLICIT_CLOTH_BPY_PYTHON is unset")
+    from implicit_cloth.results import read_run
+
+    for fmt in ("usd", "glb", "pc2"):       # the check script imports all three; only PC2 is checked here
+        assert main(["export", str(uneven_run), "--format", fmt, "--out", str(tmp_path)]) == 0
+    run = read_run(uneven_run)
+    np.savez(tmp_path / "expected.npz", positions=run.positions, codes=run.time_codes(),
+             check=np.array([1, 2, 7, 15]), fps=run.fps)
+    script = Path(__file__).parent / "blender" / "check_import.py"
+    sep = ["--"] if "-P" in cmd else []
+    proc = subprocess.run([*cmd, str(script), *sep, str(tmp_path), str(tmp_path / "expected.npz"),
+                           str(tmp_path / "blender.json")], capture_output=True, text=True, timeout=300)
+    assert (tmp_path / "blender.json").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
+    r = json.loads((tmp_path / "blender.json").read_text())["pc2"]
+    assert "error" not in r, r
+    assert r["max_error_m"] < 1e-5, r
+
