@@ -348,11 +348,15 @@ class Simulator:
         ------
         DivergenceError
             If a step produces a non-finite state (the state stays at the last finite step).
+        KeyboardInterrupt
+            On Ctrl-C (SIGINT), taken between steps as in :meth:`run` (:mod:`implicit_cloth.interrupt`): the state
+            is the last whole step's.
         """
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
             raise ValueError(f"n: must be an integer >= 0, got {n!r}")
-        with _blas_threads(self.blas_threads):
+        with _blas_threads(self.blas_threads), deferred_interrupt() as stop:   # Ctrl-C between steps only
             for _ in range(int(n)):
+                stop.check()
                 try:
                     self._advance()
                 except _NonFinite as exc:
