@@ -1,4 +1,4 @@
-"""Compiled (numba) kernels of the multigrid-preconditioned filtered PCG: the optional accelerator.
+"""Compiled (numba) kernels of the multigrid-preconditioned filtered PCG: the default back-end's.
 
 Same algorithm, same arithmetic order up to floating-point reassociation, as
 the numpy reference path (:func:`implicit_cloth.solvers.pcg.filtered_pcg` with
@@ -731,12 +731,26 @@ def kcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
                     c[k] = (a1 / rho1) * c1[k]
 
 
+@njit(cache=True)
+def _flexible(kthreshold):
+    """Whether :func:`pcg`'s CG is flexible: a K-cycle threshold (``>= 0``) given."""
+    if kthreshold is None:
+        return False
+    return kthreshold >= 0.0
+
+
 @njit(cache=True, fastmath={"contract"})
 def _precondition(r, s, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
                   pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
                   wb, wx, wr, kc, kv, kstage, kcoef, kthreshold):
-    """``s = B r``: the V-cycle, or the K-cycle when ``kthreshold >= 0``."""
-    if kthreshold >= 0.0:
+    """``s = B r``: the V-cycle, or the K-cycle when ``kthreshold >= 0``. ``kthreshold`` None: the V-cycle, decided
+    when compiling (numba prunes the branch on an argument's ``is None``), so a V-cycle run never compiles the
+    K-cycle."""
+    if kthreshold is None:
+        vcycle(r, s, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
+               pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
+               wb, wx, wr)
+    elif kthreshold >= 0.0:
         kcycle(r, s, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
                pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
                wb, wx, wr, kc, kv, kstage, kcoef, kthreshold)
@@ -805,7 +819,7 @@ def _dnorm2(d, x):
 def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, Sc, dinv,
         pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
         b, z, guess, use_guess, mass, use_mass, tol, max_iterations, bound_only, min_delay, delay_fraction,
-        sum_chunks, kthreshold=-1.0):
+        sum_chunks, kthreshold=None):
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
 
     ``adg``, ``auI``, ``auJ``, ``auv``: the fine matrix (unfiltered, float64, symmetric storage of
@@ -819,7 +833,8 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     on threads when the finest level's passes are, then the partials in order: the same numbers at every
     thread count); empty for one plain serial sum.
 
-    ``kthreshold``: below 0 the V-cycle (:func:`vcycle`); else the K-cycle (:func:`kcycle`, that threshold), and
+    ``kthreshold``: None (compiles the V-cycle only) or below 0 the V-cycle (:func:`vcycle`); else the K-cycle
+    (:func:`kcycle`, that threshold), and
     CG flexible: ``beta = -s_new . A p / p . A p`` (Polak-Ribiere's, equal to Fletcher-Reeves' with a fixed
     preconditioner, since ``r_new - r = -alpha A p``), ``p`` then A-orthogonal to the last direction only.
 
@@ -856,7 +871,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     if norm0 == 0.0:
         return dv, 0, 0.0, True, 0.0
     s = np.empty(N)
-    flexible = kthreshold >= 0.0
+    flexible = _flexible(kthreshold)
     kc = np.zeros(Ntot if flexible else 0)
     kv = np.zeros(Ntot if flexible else 0)
     kstage = np.zeros(len(voff), dtype=np.int64)

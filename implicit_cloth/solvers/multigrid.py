@@ -1179,7 +1179,7 @@ class _FusedHierarchy:
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
             f(mass) if mass is not None else np.zeros(0), mass is not None, float(tol), int(max_iterations),
             rule == "bound", int(min_delay), float(delay_fraction), self.sum_chunks,
-            K_THRESHOLD if self.mg.cycle == "K" else -1.0)
+            K_THRESHOLD if self.mg.cycle == "K" else None)     # None: the K-cycle is not compiled
         return dv, SolveResult(int(it), float(res), bool(conv), float(err))
 
 
