@@ -118,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--frame-rate", metavar="HZ", type=float, default=None, dest="frame_rate",
                      help="override simulation.frame_rate, kept frames per simulated second")
     run.add_argument("--threads", metavar="N", type=int, default=None,
-                     help="threads of the compiled solver (the fast extra; default: $IMPLICIT_CLOTH_THREADS, "
+                     help="threads of the compiled solver (numba's path; default: $IMPLICIT_CLOTH_THREADS, "
                           "else 1); the same numbers at every count")
     run.add_argument("--no-progress", action="store_true",
                      help="no progress bar (it is only shown when stderr is a terminal)")

@@ -658,7 +658,7 @@ class _Recorder:
                 "max_iterations_allowed": integ.max_iterations,
                 "preconditioner": integ.precond.name,
                 "cycle": getattr(integ.precond, "cycle", None),
-                # which implementation ran the preconditioned CG: "numba" (the fast extra) or "numpy"
+                # which implementation ran the preconditioned CG: "numba" (the default) or "numpy"
                 "accelerator": getattr(integ.precond, "accelerator", "numpy"),
                 "newton_iterations": integ.newton_iterations,
                 "mean_iterations": tot["iterations"] / n,
