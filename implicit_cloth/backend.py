@@ -7,9 +7,11 @@ variable ``IMPLICIT_CLOTH_ACCELERATOR`` (``auto``, ``numba`` or ``numpy``) or
 :func:`set_default_accelerator`.
 
 The kernels are compiled on first use and kept in numba's cache (``cache=True``, beside the kernels' source in
-``__pycache__``), so only the first run of an installation compiles, and only the kernels that run uses (a run
-without contact compiles no contact kernel, a V-cycle run no K-cycle). That first compilation says so once on
-stderr (:data:`COMPILE_NOTICE`); a run that finds every kernel it uses in the cache prints nothing.
+``__pycache__``), so only the first run of an installation compiles, and only the kernels that run uses: a run
+without contact compiles no contact kernel, a V-cycle run no K-cycle, and a run on one thread (the default) none
+of the threaded (``parallel=True``) passes of the solver (:func:`implicit_cloth.kernels.pcg._on`), which took as
+long to compile as the rest. That first compilation says so once on stderr (:data:`COMPILE_NOTICE`); a run that
+finds every kernel it uses in the cache prints nothing.
 
 :func:`get_backend` gives the :class:`Backend` object for a choice: a model resolves it once and
 passes it to its system matrix, springs and preconditioner, which dispatch through it.

@@ -30,15 +30,17 @@ out = {"accelerator": sim.run(duration=0.02).report["solver"]["accelerator"],
        "modules": sorted(m for m in sys.modules if m == "numba" or m.startswith("implicit_cloth.kernels"))}
 if "numba" in sys.modules:
     from implicit_cloth.kernels import pcg
+    names = list(__import__("inspect").signature(pcg.pcg.py_func).parameters)
     out["pcg_cycle_arg"] = [str(sig[-1]) for sig in pcg.pcg.signatures]
+    out["pcg_lpar_arg"] = [str(sig[names.index("lpar")]) for sig in pcg.pcg.signatures]
     out["kcycle_signatures"] = len(pcg.kcycle.signatures)
 print(json.dumps(out))
 """
 
 
-def _run(code: str, *args: str, accelerator: str | None = None) -> tuple[dict, str]:
+def _run(code: str, *args: str, accelerator: str | None = None, **extra_env: str) -> tuple[dict, str]:
     env = {k: v for k, v in os.environ.items() if k != "IMPLICIT_CLOTH_ACCELERATOR"}
-    env["PYTHONPATH"] = str(ROOT)
+    env.update(extra_env, PYTHONPATH=str(ROOT))
     if accelerator is not None:
         env["IMPLICIT_CLOTH_ACCELERATOR"] = accelerator
     p = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env, timeout=900)
@@ -59,6 +61,8 @@ def test_default_is_numba_and_a_warm_run_compiles_nothing_and_says_nothing():
         assert "implicit_cloth.kernels.smoothed" not in out["modules"]
         assert "implicit_cloth.kernels.strain" not in out["modules"]
         assert out["pcg_cycle_arg"] == ["none"] and out["kcycle_signatures"] == 0, out
+        # one thread: the threads' flags None, so that no parallel=True kernel is compiled (kernels.pcg._on)
+        assert out["pcg_lpar_arg"] == ["none"], out
 
 
 def test_numpy_reference_on_request_imports_no_numba():
@@ -85,3 +89,39 @@ print(json.dumps([f(1), g(1.5)]))
     assert out == [2, 3.0]
     assert err.count(COMPILE_NOTICE) == 1, err
     assert err.index("compiling\n") < err.index(COMPILE_NOTICE)      # said at the compilation, not at import
+
+
+#: RUN, recording the qualified name of every function numba compiles
+RECORDING = RUN.replace("import implicit_cloth as ic\n", """import implicit_cloth as ic
+from numba.core import event
+compiled = []
+class Recorder(event.Listener):
+    def on_start(self, ev):
+        f = ev.data["dispatcher"].py_func
+        compiled.append(f.__module__ + "." + f.__qualname__)
+    def on_end(self, ev):
+        pass
+event.register("numba:compile", Recorder())
+""", 1).replace("print(json.dumps(out))", "out['compiled'] = compiled\nprint(json.dumps(out))")
+
+
+@pytest.mark.slow
+def test_a_cold_first_run_compiles_only_the_serial_v_cycle_path(tmp_path):
+    """From an empty cache (NUMBA_CACHE_DIR): the notice once, and the hanging cloth on one thread compiles no
+    parallel kernel, no K-cycle and no contact kernel (about 20 s of compilation here, against 40 before)."""
+    out, err = _run(RECORDING, str(ROOT / "examples" / "hanging.toml"), NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    assert err.count(COMPILE_NOTICE) == 1, err
+    compiled = set(out["compiled"])
+    assert {"implicit_cloth.kernels.pcg.vcycle", "implicit_cloth.kernels.pcg.pcg"} <= compiled
+    from implicit_cloth.kernels import assembly, pcg, springs
+
+    parallel = {f"{m.__name__}.{name}" for m in (assembly, pcg, springs) for name, f in vars(m).items()
+                if getattr(f, "targetoptions", {}).get("parallel")}
+    assert len(parallel) >= 10
+    # the spring forces' kernel runs as a parallel region on one thread too, by design (its parallel lowering
+    # vectorises the loop: effects.springs), when a line search or an energy check evaluates forces
+    parallel.discard("implicit_cloth.kernels.springs.pspring_forces")
+    assert not compiled & parallel, sorted(compiled & parallel)
+    assert "implicit_cloth.kernels.pcg.kcycle" not in compiled
+    assert not [c for c in compiled if c.startswith(("implicit_cloth.kernels.smoothed",
+                                                     "implicit_cloth.kernels.strain"))]
