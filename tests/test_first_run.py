@@ -108,7 +108,7 @@ event.register("numba:compile", Recorder())
 @pytest.mark.slow
 def test_a_cold_first_run_compiles_only_the_serial_v_cycle_path(tmp_path):
     """From an empty cache (NUMBA_CACHE_DIR): the notice once, and the hanging cloth on one thread compiles no
-    parallel kernel, no K-cycle and no contact kernel (about 20 s of compilation here, against 40 before)."""
+    parallel kernel, no K-cycle and no contact kernel (about 20 s of compilation here; those would double it)."""
     out, err = _run(RECORDING, str(ROOT / "examples" / "hanging.toml"), NUMBA_CACHE_DIR=str(tmp_path / "cache"))
     assert err.count(COMPILE_NOTICE) == 1, err
     compiled = set(out["compiled"])
