@@ -1,11 +1,17 @@
-"""The numerical back-end of a model: numpy (the reference) or numba (the optional compiled kernels).
+"""The numerical back-end of a model: numba (the compiled kernels, the default) or numpy (the reference).
 
-``"numba"`` compiles the fused kernels of :mod:`implicit_cloth.kernels`
-(install the ``fast`` extra: ``pip install implicit_cloth[fast]``); ``"numpy"``
-is the reference path and the fallback; ``"auto"`` (default) picks numba when
-it is installed. The default can be set for a process with the environment
+``"numba"`` runs the fused kernels of :mod:`implicit_cloth.kernels` (numba is a dependency of the package);
+``"numpy"`` is the reference path, the same passes in numpy, and the fallback; ``"auto"`` (default) picks
+numba when it can be imported. The default can be set for a process with the environment
 variable ``IMPLICIT_CLOTH_ACCELERATOR`` (``auto``, ``numba`` or ``numpy``) or
 :func:`set_default_accelerator`.
+
+The kernels are compiled on first use and kept in numba's cache (``cache=True``, beside the kernels' source in
+``__pycache__``), so only the first run of an installation compiles, and only the kernels that run uses: a run
+without contact compiles no contact kernel, a V-cycle run no K-cycle, and a run on one thread (the default) none
+of the threaded (``parallel=True``) passes of the solver (:func:`implicit_cloth.kernels.pcg._on`), which took as
+long to compile as the rest. That first compilation says so once on stderr (:data:`COMPILE_NOTICE`); a run that
+finds every kernel it uses in the cache prints nothing.
 
 :func:`get_backend` gives the :class:`Backend` object for a choice: a model resolves it once and
 passes it to its system matrix, springs and preconditioner, which dispatch through it.
@@ -15,6 +21,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -163,8 +170,41 @@ def resolve(name: str | None = None) -> str:
     if name == "auto":
         return "numba" if numba_available() else "numpy"
     if name == "numba" and not numba_available():
-        raise ValueError("accelerator: numba is not installed (pip install 'implicit_cloth[fast]'), got 'numba'")
+        raise ValueError("accelerator: numba is not installed (a dependency of implicit_cloth: pip install numba), "
+                         "got 'numba'")
     return name
+
+
+#: What the first compilation of a process says on stderr (once; nothing when every kernel comes from the cache).
+COMPILE_NOTICE = "implicit_cloth: compiling numba kernels (first run only, cached afterwards)..."
+_notice: object = None
+
+
+def announce_compiles() -> None:
+    """Say :data:`COMPILE_NOTICE` on stderr at the first numba compilation of this process, once.
+
+    A listener on numba's ``numba:compile`` event, which numba fires only when it compiles, never when it loads
+    a kernel from its cache: so a run with a warm cache says nothing, and a cold one says it once, before the
+    wait. Installed by the numba back-end (:class:`NumbaBackend`), idempotent.
+    """
+    global _notice
+    if _notice is not None:
+        return
+    from numba.core import event
+
+    class _Notice(event.Listener):
+        said = False
+
+        def on_start(self, ev: event.Event) -> None:
+            if not self.said:
+                self.said = True
+                print(COMPILE_NOTICE, file=sys.stderr, flush=True)
+
+        def on_end(self, ev: event.Event) -> None:
+            pass
+
+    _notice = _Notice()
+    event.register("numba:compile", _notice)
 
 
 
@@ -256,13 +296,15 @@ class Backend:
 
 
 class NumbaBackend(Backend):
-    """The compiled kernels (the ``fast`` extra): the same passes as :class:`Backend`, same values."""
+    """The compiled kernels: the same passes as :class:`Backend`, same values."""
 
     name = "numba"
     compiled = True
 
     def __init__(self) -> None:
         from .kernels import assembly as _kernels  # noqa: F401  (imports numba; kernels compile or load from cache on use)
+
+        announce_compiles()
 
     def threaded(self, n: int) -> bool:
         """Whether the compiled passes over a cloth of ``n`` vertices run on threads: more than one allowed

@@ -91,7 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog=PROG,
         description="Mass-spring cloth simulation with Baraff-Witkin implicit integration.",
-        epilog="Exit codes: 0 ok, 1 results could not be written, 2 bad input, 3 diverged.",
+        epilog=f"Exit codes: {EXIT_OK} ok, {EXIT_WRITE_FAILED} results could not be written (out of memory, a full "
+               f"disk; batch: cases left pending), {EXIT_BAD_INPUT} bad input, {EXIT_DIVERGED} diverged, "
+               f"{EXIT_WARNING} finished with warnings (run --strict), {EXIT_INTERRUPTED} interrupted (Ctrl-C).",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
@@ -102,7 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "DIR/report.json (run report and normalised scene). Options override the scene's "
                     "[simulation] table and are validated like it.",
         epilog="Exit codes: 0 ok (or warning without --strict), 1 results could not be written, 2 bad input, "
-               "3 diverged (partial trajectory and report still written), 4 finished with warnings (--strict).",
+               "3 diverged (partial trajectory and report still written), 4 finished with warnings (--strict), "
+               "130 interrupted (Ctrl-C; nothing written).",
     )
     run.add_argument("scene", metavar="SCENE.toml", help="scene file")
     run.add_argument("--out", metavar="DIR", default=None,
@@ -115,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--frame-rate", metavar="HZ", type=float, default=None, dest="frame_rate",
                      help="override simulation.frame_rate, kept frames per simulated second")
     run.add_argument("--threads", metavar="N", type=int, default=None,
-                     help="threads of the compiled solver (the fast extra; default: $IMPLICIT_CLOTH_THREADS, "
+                     help="threads of the compiled solver (numba's path; default: $IMPLICIT_CLOTH_THREADS, "
                           "else 1); the same numbers at every count")
     run.add_argument("--no-progress", action="store_true",
                      help="no progress bar (it is only shown when stderr is a terminal)")
@@ -205,7 +208,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     compare = sub.add_parser(
         "compare", help="plot a sweep's health figures against a swept key",
-        description="Turn DIR/summary.json of a batch into plots DIR/compare/<metric>_vs_<key>.png: each "
+        description="Turn DIR/summary.json of a batch into plots DIR/compare/per_case/<metric>_vs_<key>.png "
+                    "(with --by KEY: DIR/compare/by_<KEY>/<metric>_vs_<key>.png; the dots of keys written as "
+                    "underscores, e.g. by_simulation_integrator/max_strain_vs_simulation_dt.png): each "
                     "health figure against one swept key, one line per group. Needs matplotlib.",
     )
     compare.add_argument("dir", metavar="DIR", help="a batch output directory")
@@ -215,7 +220,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help="one line per value of this swept key (default: per combination of the others)")
     compare.add_argument("--metrics", metavar="NAME", nargs="+", default=None,
                          help="columns to plot (default energy_drift_rel max_strain mean_iterations wall_s)")
-    compare.add_argument("--out", metavar="DIR", default=None, help="where to write the plots (default DIR/compare)")
+    compare.add_argument("--out", metavar="DIR", default=None,
+                         help="where to write the plots (default DIR/compare), in its per_case/ or by_<KEY>/ folder")
     compare.add_argument("--debug", action="store_true", help="print tracebacks of errors")
     compare.set_defaults(handler=cmd_compare)
     return parser

@@ -3,7 +3,9 @@
 Python raises KeyboardInterrupt from its SIGINT handler at the next bytecode it runs. When that is the moment a
 numba function returns, the exception is set while the compiled call reports success, and CPython turns it
 into ``SystemError: CPUDispatcher(...) returned a result with an exception set`` (a traceback and exit 1
-instead of exit 130). Inside :func:`deferred_interrupt` the first SIGINT only sets a flag, and
+instead of exit 130, or in a program a SystemError instead of KeyboardInterrupt). :meth:`Simulator.step
+<implicit_cloth.Simulator.step>` and :meth:`Simulator.run <implicit_cloth.Simulator.run>` step inside
+:func:`deferred_interrupt`: there the first SIGINT only sets a flag, and
 :meth:`DeferredInterrupt.check` (called between steps, in Python) raises the KeyboardInterrupt; a second SIGINT
 raises at once, as usual. The handler is installed only in the main thread and only over Python's default
 handler (a program's own SIGINT handling is left alone).

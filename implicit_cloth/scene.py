@@ -90,7 +90,7 @@ def _simulation(d: Mapping[str, Any]) -> dict[str, Any]:
     check_keys("simulation", d, SIM_KEYS)
     out = dict(DEFAULTS["simulation"])
     if "integrator" in d:
-        out["integrator"] = choice("simulation.integrator", d["integrator"], INTEGRATORS)
+        out["integrator"] = INTEGRATORS.choice("simulation.integrator", d["integrator"])
     if "dt" in d:
         out["dt"] = number("simulation.dt", d["dt"], lo=0.0, lo_open=True)
     if "duration" in d:

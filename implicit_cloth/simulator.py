@@ -393,11 +393,15 @@ class Simulator:
         ------
         DivergenceError
             If a step produces a non-finite state (the state stays at the last finite step).
+        KeyboardInterrupt
+            On Ctrl-C (SIGINT), taken between steps as in :meth:`run` (:mod:`implicit_cloth.interrupt`): the state
+            is the last whole step's.
         """
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
             raise ValueError(f"n: must be an integer >= 0, got {n!r}")
-        with _blas_threads(self.blas_threads):
+        with _blas_threads(self.blas_threads), deferred_interrupt() as stop:   # Ctrl-C between steps only
             for _ in range(int(n)):
+                stop.check()
                 try:
                     self._advance()
                 except _NonFinite as exc:
@@ -709,7 +713,7 @@ class _Recorder:
                 "max_iterations_allowed": integ.max_iterations,
                 "preconditioner": integ.precond.name,
                 "cycle": getattr(integ.precond, "cycle", None),
-                # which implementation ran the preconditioned CG: "numba" (the fast extra) or "numpy"
+                # which implementation ran the preconditioned CG: "numba" (the default) or "numpy"
                 "accelerator": getattr(integ.precond, "accelerator", "numpy"),
                 "newton_iterations": integ.newton_iterations,
                 "mean_iterations": tot["iterations"] / n,

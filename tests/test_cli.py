@@ -146,6 +146,39 @@ def test_bad_override_exits_2(tmp_path, capsys, args, key):
     assert err.count("\n") == 1 and "Traceback" not in err
 
 
+@pytest.mark.parametrize("given, meant", [
+    ("implicit_euler", "backward_euler"), ("Implicit-Euler", "backward_euler"), ("bdf1", "backward_euler"),
+    ("explicit_euler", "forward_euler"), ("euler", "forward_euler"), ("semi_implicit_euler", "symplectic_euler"),
+    ("velocity_verlet", "verlet"), ("runge_kutta", "rk4"), ("bfd2", "bdf2"), ("Backward_Euler", "backward_euler"),
+])
+def test_integrator_suggestion_names_the_method_meant(tmp_path, capsys, given, meant):
+    """Another name of a method (implicit Euler is backward Euler) or a misspelling suggests that method, not the
+    closest spelling (``implicit_euler`` used to suggest ``symplectic_euler``)."""
+    assert run(str(write(tmp_path, SMALL)), "--out", str(tmp_path / "o"), "--integrator", given) == 2
+    err = capsys.readouterr().err
+    assert f"(did you mean '{meant}'?), got '{given}'" in err, err
+    assert err.startswith("implicit-cloth: error: simulation.integrator: must be one of ")
+
+
+def test_integrator_without_a_near_name_gets_no_suggestion(tmp_path, capsys):
+    assert run(str(write(tmp_path, SMALL)), "--out", str(tmp_path / "o"), "--integrator", "nonsense") == 2
+    assert "did you mean" not in capsys.readouterr().err
+
+
+def test_help_lists_every_exit_code(capsys):
+    """The top-level --help and run's name every exit code the command line returns (the EXIT_ constants)."""
+    from implicit_cloth import cli
+
+    codes = {v for k, v in vars(cli).items() if k.startswith("EXIT_")}
+    assert codes == {0, 1, 2, 3, 4, 130}
+    for argv in (["--help"], ["run", "--help"]):
+        assert main(argv) == 0
+        text = " ".join(capsys.readouterr().out.split())
+        listed = text[text.index("Exit codes:"):]
+        named = {int(c) for c in re.findall(r"(?:: |, )(\d+) ", listed)}
+        assert named == codes, (argv, listed)
+
+
 def test_usage_errors_exit_2(tmp_path, capsys):
     assert main([]) == 2
     assert main(["run"]) == 2

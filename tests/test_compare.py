@@ -4,6 +4,8 @@ marked as diverged (never plotted at the figures of a run that stopped)."""
 from __future__ import annotations
 
 import json
+import re
+from pathlib import Path
 
 import pytest
 
@@ -81,3 +83,20 @@ def test_a_diverged_case_is_marked_not_plotted_at_zero(sweep_dir, monkeypatch):
     assert all(0.0 not in list(ln.get_ydata()) for ln in data)         # the diverged 0 is never a value
     bdf2_20000 = [ln for ln in data if ln.get_label() == "integrator=bdf2, stiffness=20000"]
     assert len(bdf2_20000) == 1 and list(bdf2_20000[0].get_xdata()) == [0.01]
+
+
+def test_compare_help_names_the_files_compare_writes(sweep_dir, capsys):
+    """The paths in ``compare --help`` are those written, with and without --by."""
+    assert main(["compare", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    patterns = re.findall(r"DIR/compare/[\w<>/]+\.png", text)
+    assert patterns == ["DIR/compare/per_case/<metric>_vs_<key>.png", "DIR/compare/by_<KEY>/<metric>_vs_<key>.png"]
+    assert "by_simulation_integrator/max_strain_vs_simulation_dt.png" in text
+    for pattern, by in zip(patterns, (None, "simulation.integrator")):
+        assert main(["compare", str(sweep_dir), "--metrics", "max_strain"] + (["--by", by] if by else [])) == 0
+        written = capsys.readouterr().out.split()
+        want = (pattern.replace("DIR", str(sweep_dir)).replace("<metric>", "max_strain")
+                .replace("<key>", "simulation_dt").replace("<KEY>", (by or "").replace(".", "_")))
+        assert written == [want]
+        assert Path(want).is_file()
+

@@ -125,6 +125,55 @@ def test_pc2_and_rest_obj_read_back_at_every_frame(moving_run, tmp_path):
     np.testing.assert_allclose(back, pos, atol=F32)
 
 
+@pytest.fixture(scope="module")
+def uneven_run(tmp_path_factory):
+    """The hanging example's time line (dt 0.01 s, 30 frames a second: frames kept on the nearest step, 0, 0.03,
+    0.07, 0.1, ... s) on a small cloth, 0.5 s (16 frames)."""
+    scene = ic.load_scene(Path(__file__).parents[1] / "examples" / "hanging.toml").data
+    scene["simulation"]["duration"] = 0.5
+    scene["cloth"]["resolution"] = [6, 6]
+    return _run(tmp_path_factory.mktemp("export_uneven"), scene)
+
+
+def _pc2_times(path, fps):
+    """Each sample's time as a reader honouring the header plays it: (start + k rate) / fps."""
+    from implicit_cloth.export.meshes import read_pc2
+
+    pts, start, rate = read_pc2(path)
+    return (start + rate * np.arange(len(pts))) / fps, pts
+
+
+def test_pc2_header_reproduces_the_frame_times_of_steps_not_dividing_the_frames(uneven_run, tmp_path):
+    """The samples play at the kept frames' times (to half a step, where the run kept them) and the last one at
+    the run's end: the header's rate is one frame at the run's 30 frames a second, not the first gap's 0.9."""
+    from implicit_cloth.results import read_run
+
+    pos, times, _ = _traj(uneven_run)
+    assert np.diff(times).min() < np.diff(times).max() - 0.005          # the kept frames are unevenly spaced
+    run = read_run(uneven_run)
+    assert run.fps == 30.0
+    assert main(["export", str(uneven_run), "--format", "pc2", "--out", str(tmp_path)]) == 0
+    t, pts = _pc2_times(tmp_path / "animation.pc2", run.fps)
+    assert struct.unpack("<ff", (tmp_path / "animation.pc2").read_bytes()[20:28]) == (0.0, 1.0)
+    assert len(t) == len(times) == 16
+    np.testing.assert_allclose(t, times, atol=0.005 + 1e-9)              # half a step
+    np.testing.assert_allclose(t[-1], 0.5, rtol=1e-6)                    # 0.5 s plays in 0.5 s
+    np.testing.assert_allclose(pts, pos, atol=F32)
+    # every third frame: start 3, rate 3 frames
+    assert main(["export", str(uneven_run), "--format", "pc2", "--out", str(tmp_path / "thirds"),
+                 "--frames", "3", "6", "9", "12", "15"]) == 0
+    t, _ = _pc2_times(tmp_path / "thirds" / "animation.pc2", run.fps)
+    np.testing.assert_allclose(t, times[3::3], atol=0.005 + 1e-9)
+    np.testing.assert_allclose(t, [0.1, 0.2, 0.3, 0.4, 0.5], rtol=1e-6)
+
+
+def test_pc2_refuses_unevenly_chosen_frames(uneven_run, tmp_path, capsys):
+    assert main(["export", str(uneven_run), "--format", "pc2", "--out", str(tmp_path), "--frames", "0", "1", "5"]) == 2
+    err = capsys.readouterr().err
+    assert "--frames: a PC2 point cache holds evenly spaced samples" in err and "[0, 1, 5]" in err
+    assert not list(tmp_path.iterdir())
+
+
 # --------------------------------------------------------------------------- glTF
 def _glb(path):
     data = Path(path).read_bytes()
@@ -259,3 +308,28 @@ def test_blender_imports_the_exports_headless(moving_run, tmp_path):
         assert r.get("obstacle_max_error_m", 0.0) < 1e-5, r
     if "error" in result["usd"]:
         pytest.skip(f"USD not checked in Blender: {result['usd']['error']}")
+
+
+@pytest.mark.slow
+def test_blender_plays_the_pc2_of_uneven_steps_at_the_frame_times(uneven_run, tmp_path):
+    """In Blender's Mesh Cache modifier, the scene at the run's frame rate shows frame f of the hanging example's
+    time line at the scene frame of its time (``round(times[f] * fps)``)."""
+    cmd = _blender()
+    if cmd is None:
+        pytest.skip("Blender is not installed (apt-get install blender) and IMPLICIT_CLOTH_BPY_PYTHON is unset")
+    from implicit_cloth.results import read_run
+
+    for fmt in ("usd", "glb", "pc2"):       # the check script imports all three; only PC2 is checked here
+        assert main(["export", str(uneven_run), "--format", fmt, "--out", str(tmp_path)]) == 0
+    run = read_run(uneven_run)
+    np.savez(tmp_path / "expected.npz", positions=run.positions, codes=run.time_codes(),
+             check=np.array([1, 2, 7, 15]), fps=run.fps)
+    script = Path(__file__).parent / "blender" / "check_import.py"
+    sep = ["--"] if "-P" in cmd else []
+    proc = subprocess.run([*cmd, str(script), *sep, str(tmp_path), str(tmp_path / "expected.npz"),
+                           str(tmp_path / "blender.json")], capture_output=True, text=True, timeout=300)
+    assert (tmp_path / "blender.json").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
+    r = json.loads((tmp_path / "blender.json").read_text())["pc2"]
+    assert "error" not in r, r
+    assert r["max_error_m"] < 1e-5, r
+

@@ -108,9 +108,16 @@ class Registry:
     def __len__(self) -> int:
         return len(self.names())
 
+    def aliases(self) -> dict[str, str]:
+        """Other names of the components (``meta["aliases"]``), each mapped to its registered name: what a
+        "did you mean" suggests for them (``implicit_euler`` -> ``backward_euler``)."""
+        self._load()
+        return {a: n for n, e in self._entries.items() for a in e.meta.get("aliases", ())}
+
     def choice(self, path: str, value: Any) -> str:
-        """``value`` if it is a registered name, else a :class:`~implicit_cloth.errors.SceneError` at ``path``."""
-        return choice(path, value, self.names())
+        """``value`` if it is a registered name, else a :class:`~implicit_cloth.errors.SceneError` at ``path``
+        (with a "did you mean" for a near miss or another name of a component, :meth:`aliases`)."""
+        return choice(path, value, self.names(), self.aliases())
 
     def where(self, **meta: Any) -> tuple[str, ...]:
         """Names whose ``meta`` has all the given items, e.g. ``INTEGRATORS.where(implicit=True)``."""

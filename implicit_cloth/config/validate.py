@@ -13,7 +13,8 @@ from __future__ import annotations
 import difflib
 import math
 import numbers
-from typing import Any, Iterable, Mapping
+import re
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -111,11 +112,29 @@ def boolean(path: str, value: Any) -> bool:
     return bool(value)
 
 
-def choice(path: str, value: Any, choices: Iterable[str]) -> str:
-    """One of ``choices`` (a near miss gets a "did you mean")."""
+def _normal(name: str) -> str:
+    """A name spelled as the choices are: lower case, words joined by ``_`` (``Implicit-Euler``: ``implicit_euler``)."""
+    return re.sub(r"[\s\-]+", "_", name.strip().lower())
+
+
+def suggestion(value: str, choices: Sequence[str], aliases: Mapping[str, str] | None = None) -> str | None:
+    """The choice a near miss ``value`` most likely means: its spelling normalised (:func:`_normal`), then another
+    name of a choice (``aliases``: ``implicit_euler`` -> ``backward_euler``), then the closest spelling; None."""
+    norm = _normal(value)
+    if norm in choices:
+        return norm
+    if aliases and norm in aliases:
+        return aliases[norm]
+    near = difflib.get_close_matches(norm, choices, n=1, cutoff=0.6)
+    return near[0] if near else None
+
+
+def choice(path: str, value: Any, choices: Iterable[str], aliases: Mapping[str, str] | None = None) -> str:
+    """One of ``choices`` (a near miss gets a "did you mean": :func:`suggestion`, ``aliases`` mapping other
+    names of a choice to it)."""
     choices = tuple(choices)
     if not isinstance(value, str) or value not in choices:
-        near = difflib.get_close_matches(str(value), choices, n=1, cutoff=0.6) if isinstance(value, str) else []
-        hint = f" (did you mean '{near[0]}'?)" if near else ""
+        near = suggestion(value, choices, aliases) if isinstance(value, str) else None
+        hint = f" (did you mean '{near}'?)" if near else ""
         raise fail(path, f"must be one of {', '.join(choices)}{hint}", value)
     return value

@@ -60,6 +60,31 @@ def select_frames(n_frames: int, frames: Sequence[int] | None) -> list[int]:
     return out
 
 
+def pc2_timing(codes: np.ndarray, frames: Sequence[int] | None = None) -> tuple[float, float]:
+    """PC2's start frame and sample rate (frames per sample) for the exported frames' time codes ``codes``.
+
+    The frames are counted at the run's frame rate (``Run.fps``: the scene's ``frame_rate``, or ``1 / dt`` when
+    every step is kept). A kept frame lies on the step nearest its nominal time ``k / frame_rate``, up to half a
+    step (less than half a frame) away, so its time code is rounded to the nominal frame ``k``: the samples of
+    the hanging example (``dt`` 0.01 s, 30 frames a second, kept at 0, 0.03, 0.07, 0.1, ... s) are frames 0, 1,
+    2, 3, ..., one frame apart: a reader honouring the header plays the 2 s run in 2 s at 30 frames a second.
+    PC2 has one sample rate: frames chosen with unequal gaps cannot be written.
+
+    Raises
+    ------
+    InputError
+        If the exported frames are not evenly spaced.
+    """
+    nominal = np.rint(np.asarray(codes, float))
+    if len(nominal) < 2:
+        return float(nominal[0]) if len(nominal) else 0.0, 1.0
+    gaps = np.diff(nominal)
+    if np.any(gaps != gaps[0]):
+        raise InputError(f"--frames: a PC2 point cache holds evenly spaced samples (one sample rate), got frames "
+                         f"{list(frames) if frames is not None else 'all'} at unequal intervals of time")
+    return float(nominal[0]), float(gaps[0])
+
+
 def export_run(run_dir: str | os.PathLike[str], fmt: str = "usd", out: str | os.PathLike[str] | None = None,
                frames: Sequence[int] | None = None) -> list[Path]:
     """Write the run's frames in one of :data:`FORMATS` (see the module's table).
@@ -111,11 +136,10 @@ def export_run(run_dir: str | os.PathLike[str], fmt: str = "usd", out: str | os.
 
     uvs = run.uvs()
     if fmt == "pc2":
+        start, rate = pc2_timing(run.time_codes()[idx], frames)      # before writing: unequal gaps are refused
         rest = write_obj(target / "rest.obj", run.positions[idx[0]], run.faces, uvs,
                          comment=f"rest pose of animation.pc2: frame {idx[0]}, t = {run.times[idx[0]]:g} s")
-        codes = run.time_codes()[idx]
-        rate = float(codes[1] - codes[0]) if len(idx) > 1 else 1.0
-        return [rest, write_pc2(target / "animation.pc2", run.positions[idx], start=float(codes[0]), rate=rate)]
+        return [rest, write_pc2(target / "animation.pc2", run.positions[idx], start=start, rate=rate)]
     width = max(4, len(str(run.n_frames - 1)))
     written: list[Path] = []
     for f in idx:

@@ -8,6 +8,11 @@ PC2 (the format of Blender's *Mesh Cache* modifier and 3ds Max's Point Cache): a
 ``b"POINTCACHE2\\0"``, int32 version 1, int32 number of points, float32 start frame, float32 sample rate (frames
 per sample), int32 number of samples; then the samples' points, float32 little-endian, ``(samples, points, 3)``.
 Its points are in the vertex order of the rest-pose OBJ written beside it, which is the run's vertex order.
+The start frame and the sample rate count frames at the run's frame rate (the scene's ``frame_rate``, or
+``1 / dt`` when every step is kept; :func:`implicit_cloth.export.pc2_timing`): exporting every kept frame gives
+start 0 and rate 1. Blender's Mesh Cache modifier, in its default *Frames* time mode, ignores the header's start
+and rate and plays sample ``k`` at scene frame ``k`` (plus the modifier's *Frame Start*): set the scene's frame
+rate to the run's, and for every n-th frame exported (``--frames``) the modifier's *Frame Scale* to ``1/n``.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ INTEGRATOR_CLASSES: dict[str, type[Integrator]] = {
     c.name: c for c in (ForwardEuler, SymplecticEuler, Verlet, RK4, BackwardEuler, BDF2)
 }
 for _cls in INTEGRATOR_CLASSES.values():   # the registry that scene validation reads (names, implicit or not)
-    REGISTRY.register(_cls.name, factory=_cls, implicit=_cls.implicit)
+    REGISTRY.register(_cls.name, factory=_cls, implicit=_cls.implicit, aliases=_cls.aliases)
 #: Names of the integrators, in the order used by reports and benchmarks.
 INTEGRATORS: tuple[str, ...] = tuple(INTEGRATOR_CLASSES)
 

@@ -19,6 +19,7 @@ from .base import ImplicitIntegrator, Scheme, StepInfo
 
 class BackwardEuler(ImplicitIntegrator):
     name = "backward_euler"
+    aliases: tuple[str, ...] = ("implicit_euler", "euler_implicit", "backward", "implicit", "bdf1", "baraff_witkin")
 
     def _scheme(self, state: State, h: float, info: StepInfo) -> Scheme:
         x, v, t = state.x, state.v, state.t

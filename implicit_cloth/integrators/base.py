@@ -147,6 +147,8 @@ class Integrator:
 
     name = ""
     implicit = False
+    #: other names of the method, suggested as this one in an error ("did you mean"), never accepted
+    aliases: tuple[str, ...] = ()
 
     def __init__(self, model: Model, solver: dict[str, Any] | None = None) -> None:
         self.model = model

@@ -29,6 +29,7 @@ from .base import Scheme, StepInfo
 
 class BDF2(BackwardEuler):
     name = "bdf2"
+    aliases: tuple[str, ...] = ("bdf",)      # not backward Euler's, which it derives from
 
     def __init__(self, model, solver=None) -> None:
         super().__init__(model, solver)

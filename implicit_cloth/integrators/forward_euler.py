@@ -13,6 +13,7 @@ from .base import Integrator, StepInfo
 
 class ForwardEuler(Integrator):
     name = "forward_euler"
+    aliases: tuple[str, ...] = ("explicit_euler", "euler_explicit", "euler", "explicit", "forward")
 
     def step(self, state: State, h: float, constraints: Constraints | None = None) -> tuple[State, StepInfo]:
         info = StepInfo()

@@ -12,6 +12,7 @@ from .base import Integrator, StepInfo
 
 class RK4(Integrator):
     name = "rk4"
+    aliases: tuple[str, ...] = ("runge_kutta", "runge_kutta_4", "rk")
 
     def step(self, state: State, h: float, constraints: Constraints | None = None) -> tuple[State, StepInfo]:
         info = StepInfo()

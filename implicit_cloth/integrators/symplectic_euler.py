@@ -14,6 +14,7 @@ from .base import Integrator, StepInfo
 
 class SymplecticEuler(Integrator):
     name = "symplectic_euler"
+    aliases: tuple[str, ...] = ("semi_implicit_euler", "semi_explicit_euler", "euler_cromer", "symplectic")
 
     def step(self, state: State, h: float, constraints: Constraints | None = None) -> tuple[State, StepInfo]:
         info = StepInfo()

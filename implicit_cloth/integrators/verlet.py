@@ -23,6 +23,7 @@ from .base import Integrator, StepInfo
 
 class Verlet(Integrator):
     name = "verlet"
+    aliases: tuple[str, ...] = ("velocity_verlet", "stormer_verlet", "leapfrog")
 
     def __init__(self, model, solver=None) -> None:
         super().__init__(model, solver)

@@ -1,4 +1,4 @@
-"""The compiled (numba) kernels of the ``fast`` extra: :mod:`.assembly`, :mod:`.springs`, :mod:`.pcg`.
+"""The compiled (numba) kernels, the default back-end: :mod:`.assembly`, :mod:`.springs`, :mod:`.pcg`.
 
 Importing one of them (but the plain-Python :mod:`.estimate`) imports numba; nothing imports them
 unless the numba back-end (:mod:`implicit_cloth.backend`) is chosen. They import nothing of the

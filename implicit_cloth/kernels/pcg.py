@@ -1,4 +1,4 @@
-"""Compiled (numba) kernels of the multigrid-preconditioned filtered PCG: the optional accelerator.
+"""Compiled (numba) kernels of the multigrid-preconditioned filtered PCG: the default back-end's.
 
 Same algorithm, same arithmetic order up to floating-point reassociation, as
 the numpy reference path (:func:`implicit_cloth.solvers.pcg.filtered_pcg` with
@@ -32,8 +32,10 @@ Floating-point contraction (fused multiply-add) is allowed (``fastmath={"contrac
 no reassociation, NaN and infinity kept): the V-cycle got 12-18 % faster at 128².
 
 Every function is compiled with ``cache=True`` (the compiled code is stored
-next to this file in ``__pycache__``), so the compilation (25-50 s on the
-2-core test machine) is paid once per installation, not per run.
+next to this file in ``__pycache__``), so the compilation is paid once per installation, not per run, and only
+for the passes a run uses: on one thread (:func:`_on`: the threads' flags ``lpar`` None) no ``parallel=True``
+kernel, with the V-cycle (``kthreshold`` None) no K-cycle. The hanging example's solver compiled in about 20 s
+of CPU on the 2-core test machine that way, against about 40 s with the threaded passes and the K-cycle.
 Threads (:func:`implicit_cloth.backend.threads`, one by default): the passes of levels of at least
 ``backend.thread_min_vertices()`` vertices run on numba threads (``prange``) over a fixed number of
 chunks, each writing only its own rows (:func:`_psymmv`: a stored block between two chunks is read by
@@ -197,7 +199,14 @@ def _psymmv(dg, uI, uJ, uv, u6, use6, vb, kb, ip, ib, x, y):
 @njit(cache=True, fastmath={"contract"})
 def _msymmv(dg, uI, uJ, uv, u6, use6, part, x, y):
     """``y = A x`` serially, or on threads when ``part`` (a level's chunks, :func:`_psymmv`) is given:
-    ``part = (vb, kb, ip, ib)``, empty ``vb`` for the serial pass. Both give the same numbers."""
+    ``part = (vb, kb, ip, ib)``, empty ``vb`` for the serial pass. Both give the same numbers. ``part`` None: the
+    serial pass, decided when compiling (:func:`_on`: the threaded pass is then not compiled)."""
+    if part is None:
+        if use6:
+            _symmv6(dg, uI, uJ, u6, x, y)
+        else:
+            _symmv(dg, uI, uJ, uv, x, y)
+        return
     vb, kb, ip, ib = part
     if len(vb) == 0:
         if use6:
@@ -284,7 +293,7 @@ def _ppresmooth(dinv, omega, b, x):
 @njit(cache=True, fastmath={"contract"})
 def _presmooth(dinv, omega, b, x, par):
     """Pre-smoothing from zero: ``x = omega D^-1 b`` (on threads with ``par``: the same numbers)."""
-    if par:
+    if par is not None and par:   # None: serial, the threaded pass not compiled (:func:`_on`)
         _ppresmooth(dinv, omega, b, x)
     else:
         for i in range(len(dinv)):
@@ -300,7 +309,7 @@ def _psub(b, y):
 @njit(cache=True, fastmath={"contract"})
 def _sub(b, y, par=False):
     """``y <- b - y``."""
-    if par:
+    if par is not None and par:   # None: serial, the threaded pass not compiled (:func:`_on`)
         _psub(b, y)
     else:
         for k in range(len(y)):
@@ -365,7 +374,7 @@ def _transfer(ptr, idx, val, x, y, add, par):
     """``y (+)= M x`` for a node-level CSR ``M`` (``P`` to prolong, ``P^T`` to restrict) acting on 3-vectors
     (rows on threads with ``par``: the same numbers); ``val`` holds a scalar an entry, or a 3x3 block an entry
     (9 numbers: the smoothed prolongation, recognised by its length)."""
-    if par:
+    if par is not None and par:   # None: serial, the threaded pass not compiled (:func:`_on`)
         _ptransfer(ptr, idx, val, x, y, add)
     elif len(val) == 9 * len(idx) and len(idx):
         for i in range(len(ptr) - 1):
@@ -396,7 +405,7 @@ def _psmooth(dinv, omega, b, x, y):
 def _smooth(dinv, omega, b, x, y, par):
     """Post-smoothing update from ``y = A x``: ``y <- x + omega D^-1 (b - y)`` (in place in ``y``; on threads
     with ``par``: the same numbers)."""
-    if par:
+    if par is not None and par:   # None: serial, the threaded pass not compiled (:func:`_on`)
         _psmooth(dinv, omega, b, x, y)
     else:
         for i in range(len(dinv)):
@@ -450,7 +459,7 @@ def _sums(a, b, c, d, alpha, mass, mode, cb, par, out):
     the same numbers at every thread count."""
     if len(cb) == 0:
         return _sums_range(a, b, c, d, alpha, mass, mode, 0, len(a))
-    if par:
+    if par is not None and par:   # None: serial, the threaded pass not compiled (:func:`_on`)
         _psums(a, b, c, d, alpha, mass, mode, cb, out)
     else:
         for ch in range(len(cb) - 1):
@@ -493,7 +502,7 @@ def _pp_update(p, s, beta):
 
 @njit(cache=True, fastmath={"contract"})
 def _p_update(p, s, beta, par):
-    if par:
+    if par is not None and par:   # None: serial, the threaded pass not compiled (:func:`_on`)
         _pp_update(p, s, beta)
     else:
         for k in range(len(p)):
@@ -529,10 +538,25 @@ def _lev(l, dg, uI, uJ, uv, voff, uoff):
     return (dg[voff[l]:voff[l + 1]], uI[uoff[l]:uoff[l + 1]], uJ[uoff[l]:uoff[l + 1]], uv[uoff[l]:uoff[l + 1]])
 
 
+@njit(cache=True)
+def _on(lpar, l):
+    """Whether level l's passes run on threads (``lpar[l]``). ``lpar`` None (no level on threads, as with one
+    thread): None, a type rather than a value, so that the passes given it (``par is not None and par``,
+    :func:`_msymmv`'s ``part is None``) compile their serial loop only: numba prunes a branch on an argument's
+    ``is None`` when it compiles, and a run on one thread compiles none of the ``parallel=True`` kernels
+    (about as long to compile as the rest of the solver)."""
+    if lpar is None:
+        return None
+    return bool(lpar[l])
+
+
 @njit(cache=True, fastmath={"contract"})
 def _part(l, lpar, lpv, lpb, pbb):
     """Level l's chunks for :func:`_msymmv` (empty bounds: the serial pass): vertex bounds, block-row bounds,
-    offsets of the chunks' incoming column blocks and their list (:func:`_psymmv`)."""
+    offsets of the chunks' incoming column blocks and their list (:func:`_psymmv`); None with ``lpar`` None
+    (:func:`_on`)."""
+    if lpar is None:
+        return None
     K = len(lpv) // (2 * len(lpar))
     o = 2 * l * K
     if lpar[l]:
@@ -565,11 +589,11 @@ def _level_down(l, b, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
     tp = tptr[toff[l]:toff[l] + nc + 1]
     ti = tidx[pnnz[l]:pnnz[l + 1]]
     tv = tval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else tval[pnnz[l]:pnnz[l + 1]]
-    par = bool(lpar[l])
+    par = _on(lpar, l)
     _presmooth(d, omegas[l], bl, x, par)
     _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, r, lpar, lpv, lpb, pbb)
     _sub(bl, r, par)
-    _transfer(tp, ti, tv, r, wb[3 * voff[l + 1]:3 * voff[l + 2]], False, bool(lpar[l + 1]))
+    _transfer(tp, ti, tv, r, wb[3 * voff[l + 1]:3 * voff[l + 2]], False, _on(lpar, l + 1))
 
 
 @njit(cache=True, fastmath={"contract"}, inline="always")
@@ -588,7 +612,7 @@ def _level_up(l, b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, di
     pp = pptr[poff[l]:poff[l] + n + 1]
     pi = pidx[pnnz[l]:pnnz[l + 1]]
     pv = pval[9 * pnnz[l]:9 * pnnz[l + 1]] if blk else pval[pnnz[l]:pnnz[l + 1]]
-    par = bool(lpar[l])
+    par = _on(lpar, l)
     _transfer(pp, pi, pv, xc, x, True, par)
     _apply_level(l, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, x, y, lpar, lpv, lpb, pbb)
     _smooth(d, omegas[l], bl, x, y, par)
@@ -731,12 +755,26 @@ def kcycle(b, out, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
                     c[k] = (a1 / rho1) * c1[k]
 
 
+@njit(cache=True)
+def _flexible(kthreshold):
+    """Whether :func:`pcg`'s CG is flexible: a K-cycle threshold (``>= 0``) given."""
+    if kthreshold is None:
+        return False
+    return kthreshold >= 0.0
+
+
 @njit(cache=True, fastmath={"contract"})
 def _precondition(r, s, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
                   pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
                   wb, wx, wr, kc, kv, kstage, kcoef, kthreshold):
-    """``s = B r``: the V-cycle, or the K-cycle when ``kthreshold >= 0``."""
-    if kthreshold >= 0.0:
+    """``s = B r``: the V-cycle, or the K-cycle when ``kthreshold >= 0``. ``kthreshold`` None: the V-cycle, decided
+    when compiling (numba prunes the branch on an argument's ``is None``), so a V-cycle run never compiles the
+    K-cycle."""
+    if kthreshold is None:
+        vcycle(r, s, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
+               pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
+               wb, wx, wr)
+    elif kthreshold >= 0.0:
         kcycle(r, s, dg, uI, uJ, uv, u6, use6, voff, uoff, clist, Sc, ws, dinv,
                pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
                wb, wx, wr, kc, kv, kstage, kcoef, kthreshold)
@@ -805,7 +843,7 @@ def _dnorm2(d, x):
 def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, Sc, dinv,
         pptr, pidx, pval, poff, pnnz, tptr, tidx, tval, toff, C, upper, omegas, lpar, lpv, lpb, pbb,
         b, z, guess, use_guess, mass, use_mass, tol, max_iterations, bound_only, min_delay, delay_fraction,
-        sum_chunks, kthreshold=-1.0):
+        sum_chunks, kthreshold=None):
     """The filtered PCG of :func:`implicit_cloth.solvers.pcg.filtered_pcg` with the V-cycle preconditioner.
 
     ``adg``, ``auI``, ``auJ``, ``auv``: the fine matrix (unfiltered, float64, symmetric storage of
@@ -819,7 +857,8 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     on threads when the finest level's passes are, then the partials in order: the same numbers at every
     thread count); empty for one plain serial sum.
 
-    ``kthreshold``: below 0 the V-cycle (:func:`vcycle`); else the K-cycle (:func:`kcycle`, that threshold), and
+    ``kthreshold``: None (compiles the V-cycle only) or below 0 the V-cycle (:func:`vcycle`); else the K-cycle
+    (:func:`kcycle`, that threshold), and
     CG flexible: ``beta = -s_new . A p / p . A p`` (Polak-Ribiere's, equal to Fletcher-Reeves' with a fixed
     preconditioner, since ``r_new - r = -alpha A p``), ``p`` then A-orthogonal to the last direction only.
 
@@ -839,7 +878,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
         dv[3 * i], dv[3 * i + 1], dv[3 * i + 2] = z0 - s0, z1 - s1, z2 - s2
     r = np.empty(N)
     part = _part(0, lpar, lpv, lpb, pbb)
-    par = bool(lpar[0])
+    par = _on(lpar, 0)
     _msymmv(adg, auI, auJ, auv, au6, False, part, dv, r)
     _sub(b, r, par)
     filter_vec(clist, Sc, r)
@@ -856,7 +895,7 @@ def pcg(adg, auI, auJ, auv, au6, use6, dg, uI, uJ, uv, vu6, voff, uoff, clist, S
     if norm0 == 0.0:
         return dv, 0, 0.0, True, 0.0
     s = np.empty(N)
-    flexible = kthreshold >= 0.0
+    flexible = _flexible(kthreshold)
     kc = np.zeros(Ntot if flexible else 0)
     kv = np.zeros(Ntot if flexible else 0)
     kstage = np.zeros(len(voff), dtype=np.int64)

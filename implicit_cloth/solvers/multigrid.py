@@ -866,7 +866,7 @@ class PackedHierarchy(NamedTuple):
     C: np.ndarray         #: the coarsest solve: its upper Cholesky factor, or its dense inverse
     upper: bool           #: True: C is the factor
     omegas: np.ndarray    #: per level: the smoother's damping (Multigrid.level_omega)
-    lpar: np.ndarray      #: per level: whether its passes run on threads (see :func:`thread_chunks`)
+    lpar: np.ndarray | None   #: per level: whether its passes run on threads (see :func:`thread_chunks`); None: none
     lpv: np.ndarray       #: per level: THREAD_CHUNKS + 1 vertex bounds, then as many block-row bounds
     lpb: np.ndarray       #: per level: THREAD_CHUNKS + 1 offsets into pbb
     pbb: np.ndarray       #: each chunk's incoming column blocks (local to the level), ascending
@@ -979,7 +979,6 @@ class _FusedHierarchy:
             lists.append(ib)
             base += len(ib)
         self.pbb = np.concatenate(lists) if lists else np.zeros(0, dtype=np.int32)
-        self._serial = np.zeros(L1, dtype=np.uint8)
         # the fixed chunks CG's dot products are summed over (empty: one serial sum; CHUNKED_SUMS_MIN_VERTICES)
         n0 = systems[0].n
         self.sum_chunks = (np.linspace(0, 3 * n0, THREAD_CHUNKS + 1).round().astype(np.int64)
@@ -1133,13 +1132,15 @@ class _FusedHierarchy:
 
     def _hier(self) -> PackedHierarchy:
         C, upper = self._coarse()
-        threaded = threads() > 1
-        if threaded:
+        lpar = self._threaded_levels() if threads() > 1 else None
+        if lpar is not None and lpar.any():
             set_numba_threads()
+        else:        # no level on threads: None, so that the kernels compile their serial passes only (kernels.pcg._on)
+            lpar = None
         return PackedHierarchy(self.dg, self.uI, self.uJ, self.uv, self.vu6, self.use6, self.voff, self.uoff,
                                self.clist, self.Sc, self.ws, self.dinv, self.pptr, self.pidx, self.pval, self.poff,
                                self.pnnz, self.tptr, self.tidx, self.tval, self.toff, C, upper, self.mg.level_omega,
-                               self._threaded_levels() if threaded else self._serial, self.lpv, self.lpb, self.pbb)
+                               lpar, self.lpv, self.lpb, self.pbb)
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         from ..kernels import pcg as _fused
@@ -1179,7 +1180,7 @@ class _FusedHierarchy:
             f(b), f(z), f(guess) if guess is not None else np.zeros(0), guess is not None,
             f(mass) if mass is not None else np.zeros(0), mass is not None, float(tol), int(max_iterations),
             rule == "bound", int(min_delay), float(delay_fraction), self.sum_chunks,
-            K_THRESHOLD if self.mg.cycle == "K" else -1.0)
+            K_THRESHOLD if self.mg.cycle == "K" else None)     # None: the K-cycle is not compiled
         return dv, SolveResult(int(it), float(res), bool(conv), float(err))
 
 

@@ -97,6 +97,8 @@ def glb():
 
 def pc2():
     clear()
+    bpy.context.scene.render.fps = int(round(float(expected["fps"])))   # frame k of the scene: time k / fps
+    bpy.context.scene.render.fps_base = 1.0
     bpy.ops.wm.obj_import(filepath=f"{export_dir}/rest.obj")
     obj = [o for o in bpy.data.objects if o.type == "MESH"][0]
     mod = obj.modifiers.new("cache", "MESH_CACHE")
