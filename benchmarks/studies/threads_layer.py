@@ -120,7 +120,11 @@ def _run(variant: str, args: list[str], busy: bool = False) -> dict | None:
     for line in proc.stdout.splitlines():
         if line.startswith("RESULT "):
             res = json.loads(line[7:])
-            return res if res["layer"] == layer else None
+            # None: the run opened no parallel region (one thread compiles none), so no layer was chosen
+            if res["layer"] in (layer, None):
+                return res
+            print(f"threads_layer: {variant} {' '.join(args)}: ran on {res['layer']}, not {layer}", file=sys.stderr)
+            return None
     # the layer does not load here, or the worker failed: say which, so that a missing row has a reason
     last = (proc.stderr.strip().splitlines() or [""])[-1]
     print(f"threads_layer: {variant} {' '.join(args)}: no result (exit {proc.returncode}) {last}", file=sys.stderr)
