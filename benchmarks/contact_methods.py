@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         for m in args.methods:
             rows.append(row(n, m, duration, free[n]))
             print(f"{n}² {m}: {rows[-1]['ms_frame']:.0f} ms/frame, {rows[-1]['crossings']} crossings", flush=True)
-    res = {"machine": machine(), "quick": args.quick, "duration": duration, "hanging": free, "rows": rows}
+    res = {"benchmark": "contact_methods", "machine": machine(), "quick": args.quick, "duration": duration, "hanging": free, "rows": rows}
     write_outputs(args.out, "contact_methods", res, markdown(res))
     print(markdown(res))
     return 0

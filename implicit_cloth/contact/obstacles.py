@@ -238,7 +238,7 @@ class ObstacleBarrier:
             p0 = self._local(ob, p0w)
             p1 = self._local(ob, p0w + dw)
             target = self.xi + (1.0 - SAFE) * g0            # phi must stay above this along the path
-            _, low = ob.shape.segment_minimum(p0, p1)
+            low = _segment_low(ob.shape, p0, p1)
             near = np.flatnonzero(low < target)
             if len(near):
                 adv = _advance(ob.shape, p0[near], p1[near] - p0[near], target[near], g0[near] + self.xi)
@@ -318,6 +318,14 @@ class ObstacleBarrier:
     def active(self, x: np.ndarray) -> int:
         """Vertex and edge primitives within the barrier's reach at ``x``."""
         return int(sum(len(st.g) for st in self.stencils(x)))
+
+
+def _segment_low(shape: Any, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    """The least signed distance along each segment ``p0 -> p1`` (local points): at an end for the plane (its
+    distance is linear along a segment), the shape's segment minimum otherwise."""
+    if shape.name == "plane":
+        return np.minimum(shape.distance(p0), shape.distance(p1))
+    return shape.segment_minimum(p0, p1)[1]
 
 
 def needs_edges(shape: Any, longest: float, xi: float) -> bool:
