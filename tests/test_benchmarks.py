@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -217,6 +219,7 @@ def test_rigid_coarse_quick(tmp_path):
     assert (tmp_path / "rigid_coarse_quick.md").read_text().count("\n| ") == 5      # header, four levers
 
 
+@pytest.mark.slow
 def test_threads_layer_quick(tmp_path):
     """The threading-layer study runs each layer that loads here on one and two threads, in its own processes."""
     subprocess.run([sys.executable, str(ROOT / "benchmarks" / "threads_layer.py"), "--quick", "--out", str(tmp_path)],
