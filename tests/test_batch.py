@@ -309,6 +309,7 @@ base = "base.toml"
 """
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses process groups and /proc")
 def test_interrupted_sweep_resumes_to_completion(tmp_path):
     """Ctrl-C, then SIGKILL of the whole run, then a run whose worker is killed: it completes the sweep."""
@@ -358,6 +359,7 @@ def test_interrupted_sweep_resumes_to_completion(tmp_path):
     check_all_loadable(out)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc")
 def test_worker_deaths_beyond_the_limit_stop_cleanly(tmp_path):
     """With max_restarts=0 a killed worker stops the run: nothing false recorded, the rest pending, resumable."""
@@ -389,6 +391,7 @@ def test_worker_deaths_beyond_the_limit_stop_cleanly(tmp_path):
     check_all_loadable(out)
 
 
+@pytest.mark.slow
 def test_local_and_dask_cluster_give_identical_results(tmp_path):
     distributed = pytest.importorskip("distributed")
     p = make(tmp_path, EIGHT)

@@ -270,6 +270,7 @@ def test_rigid_coarse_quick(tmp_path):
     assert (tmp_path / "rigid_coarse_quick.md").read_text().count("\n| ") == 5      # header, four levers
 
 
+@pytest.mark.slow
 def test_threads_layer_quick(tmp_path):
     """The threading-layer study runs each layer that loads here on one and two threads, in its own processes."""
     proc = subprocess.run([sys.executable, str(STUDIES / "threads_layer.py"), "--quick", "--out", str(tmp_path)],

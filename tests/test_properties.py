@@ -159,6 +159,7 @@ def _finite_trajectory(traj, n_vertices):
     assert np.all(np.diff(traj.times) > 0)
 
 
+@pytest.mark.slow
 @SETTINGS_VALID
 @given(valid_scenes())
 def test_valid_scene_runs_finite_or_raises_divergence_error(scene):
