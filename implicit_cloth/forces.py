@@ -70,6 +70,36 @@ class Force(Protocol):
                   w: np.ndarray | None, system: Any, kw: np.ndarray | None, f: np.ndarray) -> None: ...
 
 
+class ConservativeTerm:
+    """What a purely conservative term that adds no pairs to the pattern shares (the contact barriers): no
+    dissipation, no outside power, the force the negative of its :meth:`gradient`. A subclass gives ``name``,
+    ``energy``, ``gradient`` and ``linearize``."""
+
+    conservative = True
+    dissipative = False
+    elastic = False
+
+    def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def dissipation(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        return 0.0
+
+    def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
+        g = np.zeros_like(out)
+        self.gradient(x, t, g)
+        out -= g
+
+    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        return 0.0
+
+    def pairs(self) -> np.ndarray:
+        return np.zeros((0, 2), dtype=np.int64)
+
+    def bind(self, system: Any) -> None:
+        pass
+
+
 def energy(forces: Iterable[Force], x: np.ndarray) -> float:
     """``sum_f U_f(x)`` over the conservative forces, J."""
     return float(sum(f.energy(x) for f in forces if f.conservative))

@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
+from ..forces import ConservativeTerm
+
 #: A vertex moves at most this fraction of its safe distance in one Newton iteration: under half (OGC's gamma_p),
 #: since the toolkit's safe distance is how far the vertex may move with everything else still, and both sides
 #: of a pair move (with 0.9 two stacked sheets came 0.3 mm within the offset on one run)
@@ -33,14 +35,11 @@ SAFE = 0.45
 INFLATION = 2.5
 
 
-class ClothBarrier:
+class ClothBarrier(ConservativeTerm):
     """The cloth's self-contact barrier for one step (a :class:`~implicit_cloth.forces.Force`), its trust
     regions centred at the step's start ``x0``."""
 
     name = "self_contact"
-    conservative = True
-    dissipative = False
-    elastic = False
 
     def __init__(self, mesh: Any, potential: Any, xi: float, dhat: float, x0: np.ndarray) -> None:
         import ipctk
@@ -81,23 +80,6 @@ class ClothBarrier:
         c = self._collisions_at(x)
         if len(c):
             out += np.asarray(self.potential.gradient(c, self.mesh, _f(x))).reshape(-1, 3)
-
-    def dissipation(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
-        return 0.0
-
-    def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
-        g = np.zeros_like(out)
-        self.gradient(x, t, g)
-        out -= g
-
-    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
-        return 0.0
-
-    def pairs(self) -> np.ndarray:
-        return np.zeros((0, 2), dtype=np.int64)
-
-    def bind(self, system: Any) -> None:
-        pass
 
     def hessian(self, x: np.ndarray) -> sp.csr_matrix:
         """The barrier's Hessian at ``x``, each pair's projected to positive semidefinite, (3N, 3N)."""

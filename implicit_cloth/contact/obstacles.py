@@ -35,6 +35,7 @@ import numpy as np
 from ..collision.context import Obstacle, cloth_edges
 from ..collision.shapes import MeshShape
 from ..errors import SceneError
+from ..forces import ConservativeTerm
 from . import barrier
 
 #: A line search moves a vertex at most this fraction of its gap to an obstacle.
@@ -82,7 +83,7 @@ class _Stencil(NamedTuple):
     kappa: np.ndarray
 
 
-class ObstacleBarrier:
+class ObstacleBarrier(ConservativeTerm):
     """The barrier energy of the cloth's free vertices and of its edges against every obstacle (a
     :class:`~implicit_cloth.forces.Force`).
 
@@ -95,9 +96,6 @@ class ObstacleBarrier:
     """
 
     name = "contact"
-    conservative = True
-    dissipative = False
-    elastic = False
 
     def __init__(self, obstacles: list[Obstacle], free: np.ndarray, kappa: np.ndarray, xi: float,
                  dhat: float, t: float, edges: np.ndarray | None = None, rest: np.ndarray | None = None) -> None:
@@ -177,20 +175,6 @@ class ObstacleBarrier:
             gn = (st.kappa * barrier.first(st.g, self.dhat))[:, None] * st.n
             for c in range(st.idx.shape[1]):
                 np.add.at(out, st.idx[:, c], st.w[:, c, None] * gn)
-
-    def dissipation(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
-        return 0.0
-
-    def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
-        g = np.zeros_like(out)
-        self.gradient(x, t, g)
-        out -= g
-
-    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
-        return 0.0
-
-    def pairs(self) -> np.ndarray:
-        return np.zeros((0, 2), dtype=np.int64)
 
     def bind(self, system: Any) -> None:
         """Which edges' off-diagonal blocks the system's pattern holds (their Hessian's coupling)."""
