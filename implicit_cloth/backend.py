@@ -63,12 +63,12 @@ def threads() -> int:
 
     Only the numba back-end uses more than one, and only on multigrid levels of at least
     :func:`thread_min_vertices` vertices (16384 under every threading layer; GNU OpenMP's, which the kernels
-    ask numba for first, :mod:`implicit_cloth.kernels.layer`, had 4096 until 2026-12-06):
+    ask numba for first, :mod:`implicit_cloth.kernels.layer`, included):
     the products, smoothing sweeps, transfers, CG's updates and, from 16384 fine vertices, its dot products,
     and the Galerkin refresh; the springs' assembly from the same size. The numbers are the same for every thread
     count: the chunks, not the threads, decide what is summed where, so a run is reproducible bit for bit.
     One thread by default: on the shared 2-core test machine a second thread was slower whenever other work
-    held the other core (see docs/benchmarks.md). BLAS threads are a separate setting
+    held the other core (docs/benchmarks.md, "Both cores: the threading layer"). BLAS threads are a separate setting
     (``Simulator(blas_threads=1)`` by default).
     """
     if _threads is not None:

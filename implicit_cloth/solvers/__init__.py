@@ -23,24 +23,23 @@ __all__ = ["AUTO_SMOOTHED_CONTACT_MIN_VERTICES", "AUTO_SMOOTHED_LINEAR_MIN_VERTI
 #: thread, 72.1 -> 58.8 ms a frame at 128², on two 361 -> 240 at 256²; with the default step control 175 -> 153
 #: at 128²; at 64² a tie (13.9 / 13.4), at 32² slower (3.9 / 4.2).
 AUTO_SMOOTHED_MIN_VERTICES = 16384
-#: ... and of a grid cloth among obstacles from this many (64²). Until 2026-12-06 contact scenes kept the plain
-#: multigrid: with the smoothed one the shared drape took more solves a frame (64² 170 -> 219 ms, 128² 1.6 ->
-#: 2.7 s), which were CG breaking down on an indefinite V-cycle (a coarse level's smoother amplifying,
-#: multigrid.SMOOTHER_RHO) and adaptive stepping halving the steps. With each coarse level's damping following
-#: its matrix, the smoothed multigrid takes about half the plain one's CG iterations a solve on the drape and
-#: the drape's run costs less: docs/benchmarks.md, "Coarse smoothers that contract". From 32² since 2026-12-07,
-#: when the contacts' constrained directions were weighed by the vertices' masses in its coarse levels: the
-#: shared 32² drape, two simulators alternating in one process, 120 frames, two threads, 17.3-18.2 against
+#: ... and of a grid cloth among obstacles from this many (32²). Undamped, the smoothed multigrid took more solves a
+#: frame on the shared drape (64² 170 -> 219 ms, 128² 1.6 -> 2.7 s): CG breaking down on an indefinite V-cycle (a
+#: coarse level's smoother amplifying, multigrid.SMOOTHER_RHO) and adaptive stepping halving the steps. With each
+#: coarse level's damping following its matrix, the smoothed multigrid takes about half the plain one's CG
+#: iterations a solve on the drape and the drape's run costs less: docs/benchmarks.md, "Coarse smoothers that
+#: contract". From 32² with the contacts' constrained directions weighed by the vertices' masses in its coarse
+#: levels: the shared 32² drape, two simulators alternating in one process, 120 frames, two threads, 17.3-18.2 against
 #: 18.7-20.2 ms a frame on a quiet machine (31.7 against 51.8 CG iterations a frame, 3.61 against 3.21 solves);
 #: docs/benchmarks.md, "The contacts weighed by their masses in the coarse levels".
 AUTO_SMOOTHED_CONTACT_MIN_VERTICES = 1024
-#: (A mesh cloth among obstacles as well, from the same count since 2026-12-07, its prolongations smoothed
+#: (A mesh cloth among obstacles as well, from the same count, its prolongations smoothed
 #: aggregation's: an irregular 64² / 32² mesh dropped on the shared drape's sphere, two simulators alternating
 #: in one process, 120 frames, two threads, 97.0 against 130.1 / 23.1 against 30.9 ms a frame, 100 against 167 /
 #: 76 against 129 CG iterations a frame. A free mesh cloth keeps the plain multigrid: not measured.)
 #: ... and of a free grid cloth from this many (64²) when every step is one linear solve (fixed steps, one
 #: linearisation: ``simulation.adaptive.enabled = false``, ``solver.newton_iterations = 1``). With the set-up's
-#: lists read in order (2026-12-06) the smoothed multigrid's 8 CG iterations a step beat the plain one's 15 on the
+#: lists read in order the smoothed multigrid's 8 CG iterations a step beat the plain one's 15 on the
 #: shared 64² hanging cloth, one step a frame: 12.7 against 13.4-14.0 ms a frame on one thread, 9.3-9.4 against
 #: 10.9 on two; with the default step control it still lost on one thread (20.0 against 18.7-18.9: its Newton
 #: redos' corrections, 4-6 iterations each, pay a full set-up each). docs/benchmarks.md, "The smoothed set-up's

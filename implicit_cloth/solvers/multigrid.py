@@ -76,11 +76,11 @@ def _interp_1d(n: int) -> sp.csr_array:
 DIRECT_VERTICES = 100
 #: A grid of :data:`COARSEST_FROM` vertices or more is coarsened until its coarsest level has at most this many
 #: (5 x 5 from a square grid), whose dense Cholesky factor the V-cycle solves with. At 81 vertices (the bound
-#: was 100 for every grid until 2026-12-05) the factor and its two triangular solves a cycle (243 unknowns:
+#: of :data:`DIRECT_VERTICES`) the factor and its two triangular solves a cycle (243 unknowns:
 #: 0.45 ms and 67 us here) were a quarter of a 32² peer step; at 25 they are 32 us and 6 us, and the extra level
 #: of smoothing costs less than it saves (the peer scene, one step a frame, one thread, best of 3 twice:
 #: 32² 4.3 -> 3.4 ms, 64² 15.9 -> 14.8, 128² the same within the noise, 256² 443 -> 389; CG iterations
-#: -5 % .. +12 %; docs/benchmarks.md).
+#: -5 % .. +12 %; docs/benchmarks.md, "A coarsest level of 25 vertices").
 COARSEST_VERTICES = 30
 #: Below this many vertices the coarsest level keeps up to :data:`DIRECT_VERTICES`. The deeper hierarchy is
 #: faster there too (16² 1.6 -> 0.9 ms a step), but it re-rolls four chaotic small test scenes (a 16² drape's
