@@ -579,14 +579,17 @@ class ImplicitIntegrator(Integrator):
             Phi(v) = |v - v_hat|_M^2 / 2 + sum_f U_f(x(v)) + c_v sum_f D_f(x_k, v),   x(v) = x_pred + c_v v
 
         Projected Newton: each iteration assembles every force's Hessian blocks at the iterate (the system's
-        fixed pattern; the contact terms add diagonal blocks), solves ``A d = -grad Phi`` by the filtered PCG
-        with the pins exact (their components 0), cuts each vertex's part of the direction to what the terms
-        allow its path (``fractions(x, c_v d)``: no iterate crosses a contact), and backtracks until ``Phi``
-        decreases enough (Armijo). The first iterate is the start velocity cut the same way from ``x_pred``.
-        Stops when the correction's mass-weighted rms speed is below :data:`MINIMIZE_TOLERANCE` of the step's
-        velocity change or :data:`MINIMIZE_FLOOR`, or after ``iterations``. Since every iterate lowers
-        ``Phi``, in which contact is conservative and friction dissipative, the step creates no energy by
-        construction (up to the solve's tolerance and the lagged geometry of the dissipation).
+        fixed pattern; the contact terms add diagonal blocks, and self-contact a coupling the CG's product adds),
+        solves ``A d = -grad Phi`` by the filtered PCG with the pins exact (their components 0), cuts each
+        vertex's part of the direction to what the terms allow its path (``filter_move(x, c_v d)``: no iterate
+        crosses a contact; where the cut direction no longer descends, the cut vertices are held and the
+        others' direction solved again), and backtracks until ``Phi`` decreases enough (Armijo). The first
+        iterate is the start velocity cut the same way from ``x_pred``. Stops when the Newton correction's
+        mass-weighted rms speed is below :data:`MINIMIZE_TOLERANCE` of the step's velocity change or
+        :data:`MINIMIZE_FLOOR`, or after ``iterations``. Every iterate lowers ``Phi``, in which contact is
+        conservative and friction dissipative; backward Euler on a potential that is not convex (compressed
+        springs, a barrier over a curved surface) can still gain energy, which the step's energy balance
+        checks.
         """
         c = self._pins if pins is None else pins
         info = StepInfo(newton_iterations=0)
