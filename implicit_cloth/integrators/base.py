@@ -23,7 +23,7 @@ import numpy as np
 from .. import forces
 from ..constraints import Constraints
 from ..model import Model, State
-from ..solvers import Filter, filtered_pcg, make_preconditioner
+from ..solvers import BlockJacobi, Filter, filtered_pcg, make_preconditioner
 
 #: Relative accuracy of the Newton corrections' linear solves (inexact Newton: the next iteration corrects it).
 NEWTON_FORCING = 0.1
@@ -715,6 +715,17 @@ class ImplicitIntegrator(Integrator):
             info.iterations += res.iterations
             info.solves += 1
             dv, res = solve()                    # (its set-up again counted in the solve's time)
+        if coupling and not res.converged and res.iterations < self.max_iterations:
+            # a coupled solve (self-contact) that broke down on the V-cycle (set up without the coupling, it
+            # can stop being positive definite against the coupled matrix): solved again on block Jacobi,
+            # positive definite on any SPD matrix, to the guaranteed bound
+            info.iterations += res.iterations
+            info.solves += 1
+            jacobi = BlockJacobi(self.model.n)
+            jacobi.setup(self.model.system, filt)
+            dv, res = filtered_pcg(op, b.reshape(-1), z.reshape(-1), filt, jacobi,
+                                   self.tolerance if tolerance is None else tolerance, self.max_iterations,
+                                   mass=self._mass3, rule=jacobi.stopping_rule, compiled=False)
         info.t_setup += t1 - t0
         info.t_solve += time.perf_counter() - t1
         info.iterations += res.iterations
