@@ -106,18 +106,16 @@ class ClothBarrier(ConservativeTerm):
         self.coupling = None
         if not H.nnz:
             return
-        H = H * c_x
-        coo = H.tocoo()
+        if kw is not None and w is not None:   # (dF/dx) w
+            kw -= (H @ w.reshape(-1)).reshape(-1, 3)
+        coo = (H * c_x).tocoo()
         same = (coo.row // 3) == (coo.col // 3)
         blocks = np.zeros((len(x), 3, 3))
         np.add.at(blocks, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
-        touched = np.flatnonzero(np.any(blocks != 0.0, axis=(1, 2)))
-        np.add.at(system.blocks, system.diag_index[touched], blocks[touched])
+        system.blocks[system.diag_index] += blocks          # one diagonal block a vertex
         off = ~same
         if np.any(off):
             self.coupling = sp.csr_matrix((coo.data[off], (coo.row[off], coo.col[off])), shape=H.shape)
-        if kw is not None and w is not None:
-            kw -= (H @ w.reshape(-1)).reshape(-1, 3) / c_x
 
     # ------------------------------------------------------------------ safe moves
     def filter_move(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:

@@ -92,7 +92,8 @@ class ObstacleBarrier(ConservativeTerm):
     thin rod between two vertices is felt by the edge across it; edge terms only where the shape needs them
     (:func:`needs_edges`). The Hessian is Gauss-Newton's ``kappa b'' w w^T n n^T``, exact up to the
     negative semidefinite curvature term it drops; an edge's off-diagonal block lies on the springs' pattern
-    (a mesh edge is a structural spring, a grid's diagonal a shear spring) and is left out where it does not.
+    (a mesh edge is a structural spring, a grid's diagonal a shear spring) and is left out where it does not
+    (:meth:`SystemMatrix.has_blocks <implicit_cloth.assembly.SystemMatrix.has_blocks>`).
     """
 
     name = "contact"
@@ -114,9 +115,6 @@ class ObstacleBarrier(ConservativeTerm):
         self.edged = [needs_edges(ob.shape, longest, self.xi) for ob in obstacles]
         # an edge's share of its ends' stiffness: each vertex has about six edges, each edge two ends
         self.kappa_edge = (kappa[e[:, 0]] + kappa[e[:, 1]]) / 6.0
-        self._system: Any = None
-        #: which edges' off-diagonal blocks the bound system's pattern holds
-        self._in_pattern = np.zeros(len(e), dtype=bool)
 
     # ------------------------------------------------------------------ geometry
     def _local(self, ob: Obstacle, x: np.ndarray) -> np.ndarray:
@@ -176,36 +174,27 @@ class ObstacleBarrier(ConservativeTerm):
             for c in range(st.idx.shape[1]):
                 np.add.at(out, st.idx[:, c], st.w[:, c, None] * gn)
 
-    def bind(self, system: Any) -> None:
-        """Which edges' off-diagonal blocks the system's pattern holds (their Hessian's coupling)."""
-        self._system = system
-        if not len(self.edges):
-            return
-        self._in_pattern = system.has_blocks(self.edges[:, 0], self.edges[:, 1])
-
     def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
-        if system is not self._system:
-            self.bind(system)
         for st in self.stencils(x):
             if not len(st.g):
                 continue
             gn = (st.kappa * barrier.first(st.g, self.dhat))[:, None] * st.n
-            h2 = c_x * st.kappa * barrier.second(st.g, self.dhat)
+            k2 = st.kappa * barrier.second(st.g, self.dhat)        # d2U/dg2: the Hessian is k2 w w^T n n^T
             nn = st.n[:, :, None] * st.n[:, None, :]
             m = st.idx.shape[1]
             for a in range(m):
                 np.subtract.at(f, st.idx[:, a], st.w[:, a, None] * gn)
                 for b in range(m):
-                    H = (h2 * st.w[:, a] * st.w[:, b])[:, None, None] * nn
+                    H = (c_x * k2 * st.w[:, a] * st.w[:, b])[:, None, None] * nn
                     if a == b:
                         np.add.at(system.blocks, system.diag_index[st.idx[:, a]], H)
                     else:
                         ok = system.has_blocks(st.idx[:, a], st.idx[:, b])
                         if np.any(ok):
                             np.add.at(system.blocks, system.block_index(st.idx[ok, a], st.idx[ok, b]), H[ok])
-                    if kw is not None and w is not None:
-                        kw[st.idx[:, a]] -= (h2 / c_x * st.w[:, a] * st.w[:, b]
-                                             * np.einsum("ij,ij->i", st.n, w[st.idx[:, b]]))[:, None] * st.n
+                    if kw is not None and w is not None:   # (dF/dx) w, accumulated over repeated vertices
+                        np.subtract.at(kw, st.idx[:, a], (k2 * st.w[:, a] * st.w[:, b] * np.einsum(
+                            "ij,ij->i", st.n, w[st.idx[:, b]]))[:, None] * st.n)
 
     # ------------------------------------------------------------------ safe steps
     def fractions(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
