@@ -269,6 +269,43 @@ def from_mesh(path: str, scale: float = 1.0, translation=(0.0, 0.0, 0.0),
     return ClothGeometry(pos, faces, mesh_springs(faces, kinds, skip=degenerate), grid_shape=None)
 
 
+def mesh_uv(path: str, faces: np.ndarray, where: str = "cloth.membrane") -> np.ndarray:
+    """Texture coordinates of the triangles' corners of a mesh file read by :func:`from_mesh` (the same
+    ``faces``), (T, 3, 2): an OBJ's ``vt`` of each face corner, another format's per-vertex UVs (trimesh's
+    ``visual.uv``).
+
+    Raises
+    ------
+    SceneError
+        Naming ``where`` and the file: the file has no texture coordinates (for every face corner).
+    """
+    ext = Path(path).suffix.lower()
+    uv: np.ndarray | None = None
+    if ext == ".obj":
+        from .objfile import read_obj_uv
+
+        uv = read_obj_uv(path)
+        if uv is not None and uv.shape[0] != len(faces):
+            uv = None
+    else:
+        import trimesh  # deferred: only mesh cloths need it
+
+        try:
+            loaded = trimesh.load(path, file_type=ext[1:], force="mesh", process=False)
+            per_vertex = getattr(getattr(loaded, "visual", None), "uv", None)
+        except Exception:  # the geometry was read already; a failure here means no usable UVs
+            per_vertex = None
+        if per_vertex is not None:
+            per_vertex = np.asarray(per_vertex, dtype=float)
+            if per_vertex.ndim == 2 and per_vertex.shape[1] >= 2 and len(per_vertex) > int(faces.max()):
+                uv = per_vertex[:, :2][faces]
+    if uv is None or not np.isfinite(uv).all():
+        raise SceneError(f"{where}: the mesh file has no texture coordinates (UVs) for every face corner, which "
+                         f"the membrane needs for its rest (u, v) directions (warp and weft); add UVs to the "
+                         f"file or use [cloth.springs], got {path!r}")
+    return uv
+
+
 def _load_with_trimesh(path: str, ext: str) -> tuple[np.ndarray, np.ndarray]:
     import trimesh  # deferred: only mesh cloths need it
 

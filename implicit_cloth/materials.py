@@ -16,6 +16,29 @@ depend on resolution; the bend values below are tuned for a 1 m cloth at about
 32 x 32 vertices. The numbers are representative orders of magnitude chosen so
 that the materials rank sensibly (silk softest and lightest, leather and denim
 stiff and heavy, rubber stretchy but heavy), not measurements of a fabric.
+
+Membrane values (BW98's triangle membrane, :mod:`implicit_cloth.effects.membrane`)
+-----------------------------------------------------------------------------------
+``Material.membrane`` gives the in-plane stiffness of the sheet in N/m for the
+conditions ``stretch_u`` (warp), ``stretch_v`` (weft) and ``shear`` (energy per
+area ``k C^2 / 2``), where a published measurement was found for the fabric, and
+None otherwise (a scene that asks such a preset for its membrane values must
+then give them). They are used only when a scene has a ``[cloth.membrane]``
+table. Conversion from Kawabata's KES-FB1 tensile and shear test (which reports
+the mean of the warp and weft directions):
+
+* tensile: the test loads the strip to ``Fm = 500 gf/cm = 490.3 N/m`` and
+  reports the strain there, ``EMT`` (%), and the linearity ``LT`` (the tensile
+  energy ``WT`` over that of a straight line to the same point). The linear
+  stiffness with the measured energy at ``EMT`` is ``k = 2 WT / EMT^2 =
+  LT Fm / EMT`` (N/m; the secant stiffness is ``Fm / EMT``);
+* shear: ``G`` in gf/cm/degree is the shear force per unit length per degree of
+  shear angle; ``k_s = G x 0.980665 N/m x 180/pi = 56.19 G`` N/m per radian,
+  our ``C_s`` being the sine of the shear angle (the angle at small shear).
+
+The damping (N*s/m) is the preset's structural (stretch) and shear springs'
+``kd``, which on a square grid damp the same strain rate per unit width; the
+measurements give none (KES's hysteresis is rate-independent).
 """
 
 from __future__ import annotations
@@ -42,21 +65,63 @@ class SpringParams:
 
 
 @dataclass(frozen=True)
+class MembraneParams:
+    """The membrane's constants (:mod:`implicit_cloth.effects.membrane`), N/m and N*s/m per condition."""
+
+    stretch_u: SpringParams
+    stretch_v: SpringParams
+    shear: SpringParams
+
+    def conditions(self) -> dict[str, SpringParams]:
+        return {"stretch_u": self.stretch_u, "stretch_v": self.stretch_v, "shear": self.shear}
+
+
+@dataclass(frozen=True)
 class Material:
-    """A named cloth material: spring constants per kind and areal density."""
+    """A named cloth material: spring constants per kind, areal density and, where measured, the membrane's
+    in-plane stiffness (None: no published measurement here)."""
 
     name: str
     structural: SpringParams
     shear: SpringParams
     bend: SpringParams
     density: float  # kg/m^2
+    membrane: MembraneParams | None = None
 
     def springs(self) -> dict[str, SpringParams]:
         return {"structural": self.structural, "shear": self.shear, "bend": self.bend}
 
 
-def _m(name: str, s: tuple[float, float], sh: tuple[float, float], b: tuple[float, float], rho: float) -> Material:
-    return Material(name, SpringParams(*s), SpringParams(*sh), SpringParams(*b), rho)
+def _m(name: str, s: tuple[float, float], sh: tuple[float, float], b: tuple[float, float], rho: float,
+       membrane: tuple[float, float, float] | None = None) -> Material:
+    """A preset; ``membrane``: ``(k_u, k_v, k_s)`` in N/m, damped with the springs' ``kd``."""
+    mem = None
+    if membrane is not None:
+        mem = MembraneParams(SpringParams(membrane[0], s[1]), SpringParams(membrane[1], s[1]),
+                             SpringParams(membrane[2], sh[1]))
+    return Material(name, SpringParams(*s), SpringParams(*sh), SpringParams(*b), rho, mem)
+
+
+#: KES-FB1's tensile load, 500 gf/cm in N/m
+KES_TENSILE_LOAD = 500 * 9.80665e-3 / 0.01
+
+
+def kes_stretch(emt_percent: float, lt: float) -> float:
+    """The linear stretch stiffness (N/m) with the tensile energy KES-FB1 measures: ``LT Fm / EMT``."""
+    return lt * KES_TENSILE_LOAD / (emt_percent / 100.0)
+
+
+def kes_shear(g: float) -> float:
+    """KES-FB1's shear stiffness ``G`` (gf/cm/degree) as N/m per radian."""
+    return g * 9.80665e-3 / 0.01 * 180.0 / 3.141592653589793
+
+
+# Denim (the only preset with a measurement here, see docs/scene.md "Materials"): the KES-FB values of fabric A
+# of "Regenerated Cellulose-Based Denim Fabric for Tropical Regions: An Analytical Study on Making Denim
+# Comfortable", Journal of Textiles (Hindawi), 2016, article ID 4614168, Table 5 ("Primary hand values",
+# https://www.hindawi.com/journals/jtex/2016/4614168/tab5/):
+# EMT 5.515 %, LT 0.712, G 2.180 gf/cm/degree -> k_u = k_v = 6330 N/m, k_s = 122.5 N/m.
+_DENIM_MEMBRANE = (kes_stretch(5.515, 0.712), kes_stretch(5.515, 0.712), kes_shear(2.180))
 
 
 #: Material presets by name (read-only mapping).
@@ -64,7 +129,7 @@ MATERIALS: Mapping[str, Material] = MappingProxyType(
     {
         "cotton": _m("cotton", (5.0e3, 1.0), (5.0e2, 0.5), (2.0e1, 0.1), 0.15),
         "silk": _m("silk", (2.0e3, 0.5), (1.0e2, 0.2), (2.0, 0.02), 0.06),
-        "denim": _m("denim", (2.0e4, 2.0), (2.0e3, 1.0), (2.0e2, 0.5), 0.40),
+        "denim": _m("denim", (2.0e4, 2.0), (2.0e3, 1.0), (2.0e2, 0.5), 0.40, _DENIM_MEMBRANE),
         "leather": _m("leather", (5.0e4, 4.0), (1.0e4, 2.0), (1.0e3, 1.0), 0.90),
         "rubber": _m("rubber", (1.0e3, 0.5), (1.0e3, 0.5), (5.0e1, 0.1), 1.20),
     }

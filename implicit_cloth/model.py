@@ -90,13 +90,39 @@ class Model:
         self._init_pins([(c["pins"], g, int(o)) for c, g, o in zip(pieces, geos, start)])
         springs = pieces[0]["springs"] if len(pieces) == 1 else _spring_constants(pieces, geos)
         self.effects: list[Effect] = build_effects(self, scene.data["effects"], springs)
+        membranes = [(k, c) for k, c in enumerate(pieces) if "membrane" in c]
+        if membranes:   # after the others: a scene without [cloth.membrane] sums its forces as before
+            from .effects.membrane import build as build_membrane
+
+            self.effects.append(build_membrane(self, [self._membrane_piece(k, c, where[k], geos[k])
+                                                      for k, c in membranes]))
         self.effect_names: list[str] = scene.effects
         #: the elastic effect made of springs (strain measures, strain limiting), None without springs
-        self.springs: SpringSet | None = next((cast(SpringSet, e) for e in self.effects if e.elastic), None)
+        self.springs: SpringSet | None = next((cast(SpringSet, e) for e in self.effects if e.name == "springs"),
+                                              None)
         self._system: SystemMatrix | None = None
         self.inv_masses = 1.0 / self.masses
         self.free = np.ones(self.n, dtype=bool)
         self.free[self.pinned] = False
+
+    def _membrane_piece(self, k: int, c: dict[str, Any], where: str, geo: _cloth.ClothGeometry):
+        """Piece ``k``'s triangles of positive rest area (indices into :attr:`faces`), their rest ``(u, v)`` (T_k,
+        3, 2) m and its ``[cloth.membrane]`` table: a grid's u along its width (the plane's first axis), v along
+        its height; a mesh's from its texture coordinates (:func:`~implicit_cloth.effects.membrane.
+        metric_rest_coordinates`: its rest shape laid flat, u along the texture's u)."""
+        from .effects.membrane import metric_rest_coordinates
+
+        a, b = self.piece_faces[k]
+        fs = self.faces[a:b]
+        keep = ~_cloth.degenerate_faces(self.rest_positions, fs)
+        rest = self.rest_positions[fs[keep]]
+        if c["kind"] == "grid":
+            axes = {"xy": [0, 1], "xz": [0, 2], "yz": [1, 2]}[c["plane"]]
+            uv = rest[:, :, axes]
+        else:
+            tex = _cloth.mesh_uv(c["mesh"], geo.faces, f"{where}.membrane")[keep]
+            uv = metric_rest_coordinates(self.rest_positions, fs[keep], tex)
+        return np.arange(a, b)[keep], uv, c["membrane"]
 
     # ------------------------------------------------------------------ pins
     def _init_pins(self, pieces: list[tuple[list[dict[str, Any]], Any, int]]) -> None:

@@ -5,7 +5,8 @@ split a vertex wherever its faces give it different texture coordinates or norma
 cloth with a UV seam would come apart along it, and pins would point at other vertices. Here vertex ``k`` of
 the file (``v`` lines, counted from 1) is vertex ``k - 1`` of the cloth, whatever the faces' ``vt`` and ``vn``
 indices say; faces with more than three corners are split into a fan of triangles around their first corner.
-Other statements (``vt``, ``vn``, ``o``, ``g``, ``s``, ``usemtl``, ``mtllib``, ``l``, ``p``) are ignored.
+Other statements (``vt``, ``vn``, ``o``, ``g``, ``s``, ``usemtl``, ``mtllib``, ``l``, ``p``) are ignored; the
+texture coordinates of the faces' corners are read by :func:`read_obj_uv` (the membrane's warp and weft).
 """
 
 from __future__ import annotations
@@ -66,3 +67,44 @@ def read_obj(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
                                  f"{raw.strip()!r} in {path!r}")
             faces.extend([corners[0], corners[k], corners[k + 1]] for k in range(1, len(corners) - 1))
     return np.array(verts, float).reshape(-1, 3), np.array(faces, np.int64).reshape(-1, 3)
+
+
+def read_obj_uv(path: str | os.PathLike[str]) -> np.ndarray | None:
+    """Texture coordinates ``(u, v)`` of every triangle's corners, (T, 3, 2), in :func:`read_obj`'s triangles
+    (the same fans), from the ``vt`` lines and the faces' ``v/vt`` corners; None if a face corner has no
+    texture coordinate (or one that is not a ``vt`` of the file)."""
+    path = str(path)
+    vts: list[list[float]] = []
+    out: list[list[list[float]]] = []
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            lines = f.readlines()
+    except OSError:
+        return None
+    for raw in lines:
+        parts = raw.split("#", 1)[0].split()
+        if not parts:
+            continue
+        if parts[0] == "vt":
+            try:
+                vts.append([float(x) for x in parts[1:3]])
+            except ValueError:
+                return None
+            if len(vts[-1]) != 2:
+                return None
+        elif parts[0] == "f":
+            corners: list[list[float]] = []
+            for t in parts[1:]:
+                fields = t.split("/")
+                if len(fields) < 2 or not fields[1]:
+                    return None
+                try:
+                    k = int(fields[1])
+                except ValueError:
+                    return None
+                k = k - 1 if k > 0 else len(vts) + k
+                if not 0 <= k < len(vts):
+                    return None
+                corners.append(vts[k])
+            out.extend([corners[0], corners[m], corners[m + 1]] for m in range(1, len(corners) - 1))
+    return np.array(out, float).reshape(-1, 3, 2)

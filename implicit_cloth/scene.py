@@ -63,8 +63,12 @@ CYCLES = ("V", "K")
 MAX_NEWTON_ITERATIONS = 100
 CLOTH_KEYS = (
     "size", "resolution", "center", "plane", "mesh", "scale", "translation",
-    "mass", "density", "pins", "material", "springs", "velocity",
+    "mass", "density", "pins", "material", "springs", "velocity", "membrane",
 )
+#: ``[cloth.membrane]``'s conditions (:mod:`implicit_cloth.effects.membrane`, BW98's stretch and shear)
+MEMBRANE_CONDITIONS: tuple[str, ...] = ("stretch_u", "stretch_v", "shear")
+#: the spring kinds the membrane replaces
+MEMBRANE_REPLACES: tuple[str, ...] = ("structural", "shear")
 COLLISION_KEYS = ("method", "thickness", "restitution", "max_iterations", "newton_iterations", "friction_speed",
                   "friction_newton", "friction_pause", "self_collision", "self_friction")
 #: ``collision.method``: contacts as constraints found in rounds of solves ("rounds"), or as a barrier energy in
@@ -261,6 +265,34 @@ def _springs(d: Any, material: str | None, where: str = "cloth") -> dict[str, di
     return out
 
 
+def _membrane(d: Any, material: str | None, where: str = "cloth") -> dict[str, dict[str, float]]:
+    """``[cloth.membrane]``: each condition's stiffness (N/m, > 0) and damping (N*s/m, >= 0), from the table or
+    the material's measured values (:attr:`Material.membrane <implicit_cloth.materials.Material.membrane>`)."""
+    path = f"{where}.membrane"
+    check_keys(path, d, MEMBRANE_CONDITIONS)
+    preset = MATERIALS[material].membrane if material is not None else None
+    out: dict[str, dict[str, float]] = {}
+    for cond in MEMBRANE_CONDITIONS:
+        p = f"{path}.{cond}"
+        spec = d.get(cond, {})
+        check_keys(p, spec, ("stiffness", "damping"))
+        base = preset.conditions()[cond] if preset is not None else None
+        if "stiffness" in spec:
+            k = number(f"{p}.stiffness", spec["stiffness"], lo=0.0, lo_open=True)
+        elif base is not None:
+            k = base.stiffness
+        elif material is not None:
+            raise SceneError(f"{p}.stiffness: missing (material {material!r} has no measured membrane values; give "
+                             f"the sheet's in-plane stiffness in N/m)")
+        else:
+            raise SceneError(f"{p}.stiffness: missing (the sheet's in-plane stiffness in N/m; no material preset "
+                             f"supplies it)")
+        kd = number(f"{p}.damping", spec["damping"], lo=0.0) if "damping" in spec else (
+            base.damping if base is not None else 0.0)
+        out[cond] = {"stiffness": k, "damping": kd}
+    return out
+
+
 def _cloth_mesh(d: Mapping[str, Any], base_dir: Path | None, where: str = "cloth") -> dict[str, Any]:
     """A mesh cloth's shape keys: the file, scale and translation."""
     for key in ("size", "resolution", "plane", "center"):
@@ -322,6 +354,15 @@ def _cloth(d: Any, base_dir: Path | None, where: str = "cloth") -> dict[str, Any
     if "springs" in d and d["springs"] is None:
         raise fail(f"{where}.springs", "must be a table", None)
     out["springs"] = _springs(d.get("springs"), material, where)
+    if "membrane" in d:    # in the normalised table only when given: a scene without it is unchanged
+        if d["membrane"] is None:
+            raise fail(f"{where}.membrane", "must be a table", None)
+        out["membrane"] = _membrane(d["membrane"], material, where)
+        for kind in MEMBRANE_REPLACES:
+            if isinstance(d.get("springs"), Mapping) and kind in d["springs"]:
+                raise SceneError(f"{where}.springs.{kind}: not used with {where}.membrane (the membrane replaces "
+                                 f"the structural and shear springs; bend springs stay)")
+            out["springs"].pop(kind, None)
     return out
 
 
@@ -532,6 +573,8 @@ class Scene:
         """The names of the effects this scene declares, in evaluation order."""
         names = [k for k in EFFECTS.names() if k in self.data["effects"]]
         names += [k for k in SPRING_KINDS if any(k in c["springs"] for c in cloth_pieces(self.data))]
+        if any("membrane" in c for c in cloth_pieces(self.data)):
+            names.append("membrane")
         if self.data["obstacles"]:
             names.append("collision")
         if self_collision(self.data):
