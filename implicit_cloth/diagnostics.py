@@ -45,7 +45,7 @@ explicit run grows exponentially and crosses it within a few steps.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -63,7 +63,9 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
         ``kinetic``, ``gravity`` and ``springs`` potentials, ``potential`` (their
         sum), ``total``, and ``max_strain``: the largest ``(l - L0) / L0`` over
         the structural springs (all springs if the cloth has no structural
-        ones; 0 without springs).
+        ones; 0 without springs). With a membrane (:mod:`implicit_cloth.effects.membrane`) its energy is
+        counted with the springs' and ``max_strain`` is the largest of its threads' strains ``|w| - 1`` and
+        the structural springs' (the bend springs' are then left out).
     """
     pe = model.potential_energy(x)
     kin = model.kinetic_energy(v)
@@ -71,11 +73,15 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
     spr = pe.get("springs", 0.0)
     strain = 0.0
     s = model.springs
-    if s is not None and len(s.i):
+    membrane = next((e for e in model.effects if e.name == "membrane"), None)
+    if s is not None and len(s.i) and (membrane is None or "structural" in s.kinds):
         sl = s.kinds.get("structural", slice(0, len(s.i)))
         if sl.stop > sl.start:
             eps = s.strain(x)[sl]
             strain = float(eps.max())
+    if membrane is not None:   # its stored energy with the springs', its threads' strain with the structural
+        spr += pe["membrane"]
+        strain = max(strain, float(cast(Any, membrane).strains(x)[:, :2].max()))
     return {"kinetic": kin, "gravity": grav, "springs": spr, "potential": grav + spr,
             "total": kin + grav + spr, "max_strain": strain}
 
