@@ -520,3 +520,24 @@ def test_drape_on_a_sphere_with_the_membrane_and_the_barrier():
         assert np.linalg.norm(s.x, axis=1).min() > 0.2 + TH / 2
     assert np.linalg.norm(states[-1].x, axis=1).min() < 0.2 + TH       # it reached the sphere
     assert "energy" not in sim.health.events
+
+
+@pytest.mark.parametrize("ext, has_uv", [("ply", True), ("glb", True), ("off", False)])
+def test_other_mesh_formats_take_their_per_vertex_uvs(tmp_path, ext, has_uv):
+    """Formats read by trimesh give per-vertex UVs (``visual.uv``); a format without them (OFF) is the error
+    naming the file."""
+    trimesh = pytest.importorskip("trimesh")
+    geo, _ = _sheet((1.0, 1.0), (4, 4))
+    mesh = trimesh.Trimesh(geo.positions + [0.0, 0.0, 1.0], geo.faces, process=False,
+                           visual=trimesh.visual.TextureVisuals(uv=geo.positions[:, :2] * 2 + 1))
+    path = tmp_path / f"sheet.{ext}"
+    mesh.export(path)
+    scene = {"cloth": {"mesh": str(path), "mass": 0.1, "membrane": MEMBRANE}}
+    if not has_uv:
+        with pytest.raises(SceneError, match=r"cloth\.membrane: the mesh file has no texture coordinates.*sheet\.off"):
+            ic.Simulator(scene)
+        return
+    model = ic.Simulator(scene).model
+    mem = model.effects[-1]
+    assert len(mem.faces) == len(geo.faces) and mem.area.sum() == pytest.approx(1.0)
+    assert np.abs(mem.strains(model.rest_positions)).max() < 1e-12
