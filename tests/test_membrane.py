@@ -541,3 +541,11 @@ def test_other_mesh_formats_take_their_per_vertex_uvs(tmp_path, ext, has_uv):
     mem = model.effects[-1]
     assert len(mem.faces) == len(geo.faces) and mem.area.sum() == pytest.approx(1.0)
     assert np.abs(mem.strains(model.rest_positions)).max() < 1e-12
+
+
+def test_a_run_report_scene_with_the_membrane_loads_back_as_it_ran():
+    """A normalised scene (a report's) with ``[cloth.membrane]`` and a material validates back to itself."""
+    scene = _hanging({"shear": {"stiffness": 50.0}}, material="denim")
+    del scene["cloth"]["springs"]
+    data = ic.Scene(scene).data
+    assert ic.Scene(copy.deepcopy(data)).data == data

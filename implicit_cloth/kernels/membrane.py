@@ -48,6 +48,8 @@ def membrane_pass(x, v, w, with_w, damped, with_blocks, exact, faces, b, c, area
     Qv = np.empty((3, 3))
     Ku = np.empty((3, 3))
     Kv = np.empty((3, 3))
+    bw = np.empty(3)
+    cw = np.empty(3)
     for t in range(faces.shape[0]):
         A = area[t]
         for a in range(3):
@@ -91,7 +93,7 @@ def membrane_pass(x, v, w, with_w, damped, with_blocks, exact, faces, b, c, area
             _add_blocks(B, bidx, t, b, c, A, Qu, Qv, g, c_x * k[t, 2] + c_v * kd[t, 2], c_x * k[t, 2] * Cs if exact
                         else 0.0)
         if with_w:
-            _add_kw(kw, w, faces, t, b, c, A, Ku, Kv, g, k[t, 2], k[t, 2] * Cs if exact else 0.0)
+            _add_kw(kw, w, faces, t, b, c, A, Ku, Kv, g, k[t, 2], k[t, 2] * Cs if exact else 0.0, bw, cw)
 
 
 @njit(cache=True, inline="always")
@@ -140,11 +142,11 @@ def _add_blocks(B, bidx, t, b, c, A, Qu, Qv, g, gs, ex):
 
 
 @njit(cache=True, inline="always")
-def _add_kw(kw, w, faces, t, b, c, A, Ku, Kv, g, ks, ex):
+def _add_kw(kw, w, faces, t, b, c, A, Ku, Kv, g, ks, ex, bw, cw):
     """``kw -= K w`` for triangle ``t``: ``A (b_i Ku (sum b_j w_j) + c_i Kv (sum c_j w_j) + ks g_i (g . w)
-    + ex (b_i sum c_j w_j + c_i sum b_j w_j))``."""
-    bw = np.zeros(3)
-    cw = np.zeros(3)
+    + ex (b_i sum c_j w_j + c_i sum b_j w_j))``; ``bw``, ``cw``: scratch (3,)."""
+    bw[:] = 0.0
+    cw[:] = 0.0
     gw = 0.0
     for m in range(3):
         p = faces[t, m]
