@@ -38,7 +38,7 @@ def _scene(name: str, **simulation) -> dict:
 
 def test_every_example_is_checked_here():
     assert set(SCENES) == {"cloth_on_cone", "crumple", "drape_sphere", "hanging", "keyframed_sphere",
-                           "moving_sphere", "stiff_large_step", "two_sheets", "wind"}
+                           "membrane_drape", "moving_sphere", "stiff_large_step", "two_sheets", "wind"}
 
 
 @pytest.mark.parametrize("name", [*SCENES, "sweep"])
@@ -93,6 +93,21 @@ def test_starting_heights():
     top = d["obstacles"][0].get("center", [0.0, 0.0, 0.0])[2] + d["obstacles"][0]["radius"]
     assert d["cloth"][0]["center"][2] - top == pytest.approx(0.10)
     assert d["cloth"][1]["center"][2] - d["cloth"][0]["center"][2] == pytest.approx(0.04)
+
+
+def test_membrane_drape_takes_the_denim_membrane():
+    _claim("membrane_drape", "576 vertices")
+    _claim("membrane_drape", "5 cm above the sphere's top")
+    _claim("membrane_drape", "6330 N/m warp and weft, 122.5 N/m shear")
+    _claim("membrane_drape", "the areal density 0.4 kg/m^2")
+    d = _scene("membrane_drape")
+    c = d["cloth"]
+    assert c["resolution"][0] * c["resolution"][1] == 576 and list(c["springs"]) == ["bend"]
+    assert c["center"][2] - (d["obstacles"][0]["center"][2] + d["obstacles"][0]["radius"]) == pytest.approx(0.05)
+    m = c["membrane"]
+    assert round(m["stretch_u"]["stiffness"]) == round(m["stretch_v"]["stiffness"]) == 6330
+    assert round(m["shear"]["stiffness"], 1) == 122.5 and c["density"] == 0.4
+    assert [e.name for e in ic.Simulator(d).model.effects] == ["gravity", "drag", "springs", "membrane"]
 
 
 def test_hanging_starts_flat_falls_and_hangs_from_its_pins():
