@@ -318,7 +318,17 @@ class Simulator:
         if cloth is not None:
             terms.append(cloth.term(state.x))
         t_detect = time.perf_counter() - t0
-        new, info = integ.minimize(state, h, terms, pins)
+        share = NEWTON_ENERGY_SHARE * self._energy_growth
+        barriers = [f for f in terms if f.conservative]
+        u0 = sum(f.energy(state.x) for f in barriers)
+
+        def done(x1: np.ndarray, v1: np.ndarray, decrement: float) -> bool:
+            # Newton's next decrease of the step's potential is below a share of the energy balance's allowance,
+            # and the iterate creates no energy (its balance, the barrier's stored energy booked): it is the step
+            gain, e_step = self.measures.balance(state, State(x1, v1, state.t + h), h,
+                                                 u0 - sum(f.energy(x1) for f in barriers))
+            return decrement <= share * e_step and gain <= 0.0
+        new, info = integ.minimize(state, h, terms, pins, done=done)
         t0 = time.perf_counter()
         if np.all(np.isfinite(new.x)):
             barriers = [f for f in terms if f.conservative]
@@ -468,6 +478,10 @@ class Simulator:
 
 #: Relative slack of the strain bound (the solver's and the limiter's tolerances).
 STRAIN_TOLERANCE = 1e-3
+#: A barrier step's Newton iterations stop once the next one would lower the step's potential by less than this
+#: share of the energy balance's allowance (``adaptive.max_energy_growth`` of the energy the step moves about)
+#: and the iterate creates no energy.
+NEWTON_ENERGY_SHARE = 1.0
 
 #: Report criteria of the run health, in the order they are listed.
 HEALTH_CRITERIA: tuple[str, ...] = ("energy", "strain", "failsafe", "self_collision", "solver")

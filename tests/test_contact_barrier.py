@@ -280,3 +280,77 @@ def test_the_self_barrier_derivatives():
 
 
 EPS_SELF = 1e-2 * 0.5 ** np.arange(6)
+
+
+# --------------------------------------------------------------------------- the contact direction's pieces
+def _shapes():
+    from implicit_cloth.collision import shapes
+
+    return [("sphere", shapes.Sphere(0.3)), ("capsule", shapes.Capsule(0.03, 2.0)),
+            ("box", shapes.Box([0.4, 0.3, 0.2])), ("plane", shapes.Plane())]
+
+
+@pytest.mark.parametrize("name", ["sphere", "capsule", "box", "plane"])
+def test_the_distance_hessian_is_the_normal_s_derivative(name):
+    """Each shape's ``distance_hessian`` against central differences of its outward normal (the distance's
+    gradient), with the error's order 2, at points outside it: beside a capsule's side and beyond its end, and
+    beside a box's faces, edges and corners."""
+    shape = dict(_shapes())[name]
+    rng = np.random.default_rng(7)
+    if name == "capsule":
+        p = np.vstack([[0.05, 0.02, 0.3], [0.0, -0.04, -0.2], [0.02, 0.01, 1.05], [-0.03, 0.0, -1.04]])
+    elif name == "box":
+        p = np.vstack([[0.3, 0.01, 0.02], [0.3, 0.2, 0.0], [0.25, 0.2, 0.15], [-0.22, -0.19, 0.12]])
+    else:
+        p = rng.standard_normal((4, 3))
+        p *= (0.4 + rng.uniform(0.0, 0.2, 4) / np.linalg.norm(p, axis=1))[:, None] if name == "sphere" else 1.0
+        if name == "plane":
+            p[:, 2] = np.abs(p[:, 2]) + 0.05
+    _, n, c = shape.closest(p)
+    H = shape.distance_hessian(p, n, c)
+    assert np.all(np.linalg.eigvalsh(H) >= -1e-12)          # convex shapes, outside: positive semidefinite
+    d = rng.standard_normal(p.shape)
+    err = []
+    for e in (1e-3, 5e-4):
+        fd = (shape.closest(p + e * d)[1] - shape.closest(p - e * d)[1]) / (2 * e)
+        err.append(np.abs(fd - np.einsum("kij,kj->ki", H, d)).max())
+    if name in ("plane",) or err[0] < 1e-12:
+        assert err[0] < 1e-9
+    else:
+        assert np.log2(err[0] / err[1]) == pytest.approx(2.0, abs=0.2)
+
+
+def test_the_barrier_s_equilibrium_gap():
+    """``barrier.equilibrium``: a spring of stiffness ``a`` pulling a gap toward ``g_free`` rests where it meets
+    the barrier's force; a pull that does not reach the barrier leaves ``dhat``."""
+    from implicit_cloth.contact import barrier
+
+    dhat = 2.5e-3
+    a = np.array([10.0, 100.0, 1000.0, 1.0])
+    g_free = np.array([-0.01, -0.05, 1e-3, 0.01])
+    kappa = np.array([0.1, 10.0, 1.0, 1.0])
+    g = barrier.equilibrium(a, g_free, kappa, dhat)
+    on = g_free < dhat
+    assert np.all((g[on] > 0) & (g[on] < dhat))
+    res = a[on] * (g[on] - g_free[on]) + kappa[on] * barrier.first(g[on], dhat)
+    assert np.abs(res).max() <= 1e-9 * np.abs(a[on] * g_free[on]).max()
+    assert g[~on] == pytest.approx(dhat)
+    # a stiffer barrier holds the gap wider
+    assert barrier.equilibrium(10.0, -0.01, 1.0, dhat) > barrier.equilibrium(10.0, -0.01, 0.1, dhat)
+
+
+def test_the_self_contact_bound_lets_a_sheet_translate_and_keeps_still_vertices_still():
+    """The self-contact's safe moves: a translation of the whole cloth is never cut (it moves no pair closer); a
+    move with a vertex held still (a pin) keeps that vertex still, whatever it cuts."""
+    pytest.importorskip("ipctk")
+    sim = ic.Simulator(_stack(n=4, gap=TH * 0.8))
+    x = sim.model.rest_positions.copy()
+    term = sim.cloth_contact.term(x)
+    fall = np.tile([0.0, 0.0, -0.3], (len(x), 1))             # 30 cm: far beyond any vertex's own bound
+    assert term.filter_move(x, fall) is fall
+    rng = np.random.default_rng(3)
+    dx = fall + 0.05 * rng.standard_normal(x.shape)
+    dx[0] = 0.0
+    out = term.filter_move(x, dx)
+    assert out is not dx and np.all(out[0] == 0.0)
+    assert np.all(np.linalg.norm(out, axis=1) <= np.linalg.norm(dx, axis=1) + 1e-15)

@@ -243,6 +243,14 @@ class KeyframedMotion(RigidMotion):
 
 
 # --------------------------------------------------------------------------- shapes
+def _across(n: np.ndarray, axis: np.ndarray | None) -> np.ndarray:
+    """``I - n n^T`` (less ``a a^T`` for the unit or zero ``axis`` rows), (K, 3, 3)."""
+    H = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
+    if axis is not None:
+        H -= axis[:, :, None] * axis[:, None, :]
+    return H
+
+
 class Shape:
     """A primitive in its local frame. Subclasses implement :meth:`closest`."""
 
@@ -273,6 +281,14 @@ class Shape:
 
     def distance(self, p: np.ndarray) -> np.ndarray:
         return self.closest(p)[0]
+
+    def distance_hessian(self, p: np.ndarray, n: np.ndarray, c: np.ndarray) -> np.ndarray | None:
+        """The signed distance's Hessian ``d2 phi / dp2`` (K, 3, 3) at points ``p`` outside the shape (their
+        normals ``n`` and nearest points ``c`` from :meth:`closest`), or None where the shape does not give it (the
+        contact's Hessian then drops its curvature term). Outside a convex shape it is positive semidefinite:
+        ``1 / rho`` across the normal in each direction the surface curves, ``rho`` the radius of curvature plus
+        the distance."""
+        return None
 
     def sweep(self, p0: np.ndarray, p1: np.ndarray, r: float) -> np.ndarray:
         """Earliest ``s`` in [0, 1] with ``phi(p0 + s (p1 - p0)) <= r``; ``inf`` where there is none.
@@ -318,6 +334,9 @@ class Sphere(Shape):
     def distance(self, p):
         return _norm(p) - self.radius
 
+    def distance_hessian(self, p, n, c):
+        return _across(n, None) / np.maximum(_norm(p), 1e-300)[:, None, None]
+
     def segment_minimum(self, a0, a1):
         """Closed form: the segment's point nearest to the centre."""
         d = a1 - a0
@@ -355,6 +374,9 @@ class Plane(Shape):
         q = p.copy()
         q[:, 2] = 0.0
         return p[:, 2].copy(), n, q
+
+    def distance_hessian(self, p, n, c):
+        return np.zeros((len(p), 3, 3))
 
     def sweep(self, p0, p1, r):
         """Closed form: ``p0_z + s (p1_z - p0_z) = r``."""
@@ -412,6 +434,17 @@ class Box(Shape):
             c[ins, ax] = sgn[ins, ax] * h[ax]
         return phi, n, c
 
+    def distance_hessian(self, p, n, c):
+        """Outside: ``(P - n n^T) / phi``, ``P`` the projector on the axes the nearest point is clipped in (a face:
+        0; an edge: a cylinder's; a corner: a sphere's)."""
+        q = np.abs(p) - self.h
+        clipped = (q > 0).astype(float)
+        H = clipped[:, :, None] * np.eye(3)[None] - n[:, :, None] * n[:, None, :]
+        phi = np.sqrt(np.einsum("ij,ij->i", np.maximum(q, 0.0), np.maximum(q, 0.0)))
+        H /= np.maximum(phi, 1e-300)[:, None, None]
+        H[~np.any(q > 0, axis=1)] = 0.0
+        return H
+
 
 class Capsule(Shape):
     """Points within ``radius`` of the segment from ``-height/2`` to ``+height/2`` on the local z axis."""
@@ -443,6 +476,14 @@ class Capsule(Shape):
         a[:, 2] = np.clip(p[:, 2], -0.5 * self.height, 0.5 * self.height)
         n = _unit(p - a, fallback=np.array([1.0, 0.0, 0.0]))
         return _norm(p - a) - self.radius, n, a + self.radius * n
+
+    def distance_hessian(self, p, n, c):
+        """``(I - n n^T - e_z e_z^T) / rho`` beside the cylinder (``rho`` the distance to the axis), a sphere's
+        about the end beyond it."""
+        side = np.abs(p[:, 2]) < 0.5 * self.height
+        axis = np.where(side[:, None], np.array([0.0, 0.0, 1.0]), 0.0)
+        rho = _norm(p - (c - self.radius * n))
+        return _across(n, axis) / np.maximum(rho, 1e-300)[:, None, None]
 
 
 class Cone(Shape):

@@ -41,3 +41,21 @@ def second(d: np.ndarray, dhat: float) -> np.ndarray:
     out[on] = -2.0 * np.log(dd / dhat) - 4.0 * (dd - dhat) / dd + (dd - dhat) ** 2 / dd ** 2
     out[d <= 0] = np.inf
     return out
+
+
+def equilibrium(a: np.ndarray, g_free: np.ndarray, kappa: np.ndarray, dhat: float,
+                iterations: int = 60) -> np.ndarray:
+    """Where a gap held by a spring toward ``g_free`` rests against the barrier: the root on ``(0, dhat)`` of
+    ``a (g - g_free) + kappa b'(g)`` (``a`` N/m, ``kappa`` N/m^2; increasing in ``g``), by bisection on a log
+    scale; ``dhat`` where the spring does not reach the barrier (``g_free >= dhat``)."""
+    a, g_free, kappa = (np.broadcast_to(np.asarray(q, dtype=float), np.shape(g_free)) for q in (a, g_free, kappa))
+    lo = np.full(np.shape(g_free), np.log(1e-12 * dhat))
+    hi = np.full(np.shape(g_free), np.log(dhat))
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        g = np.exp(mid)
+        above = a * (g - g_free) + kappa * first(g, dhat) > 0
+        hi = np.where(above, mid, hi)
+        lo = np.where(above, lo, mid)
+    out = np.exp(0.5 * (lo + hi))
+    return np.where(g_free >= dhat, dhat, out)

@@ -123,7 +123,12 @@ class ClothBarrier(ConservativeTerm):
         still) without any pair of non-adjacent primitives coming within ``xi`` (the IPC Toolkit's per-vertex
         safe distances, Offset Geometric Contact's bound: a vertex far from the rest of the cloth is not held
         back by a pair in contact elsewhere); ``dx`` itself when nothing is cut."""
-        move = np.sqrt(np.einsum("ij,ij->i", dx, dx))
+        # the cloth's common translation moves no pair closer: the bound is on each vertex's move beside it (a
+        # falling sheet is not held back by its own rows); not where some vertices stay (pinned, held: a cut
+        # would move them)
+        shift = np.zeros(3) if np.any(np.all(dx == 0.0, axis=1)) else dx.mean(axis=0)
+        rel = dx - shift
+        move = np.sqrt(np.einsum("ij,ij->i", rel, rel))
         reach = float(move.max(initial=0.0))
         if reach <= 0.0:
             return dx
@@ -137,7 +142,7 @@ class ClothBarrier(ConservativeTerm):
         s = np.minimum(1.0, SAFE * safe / np.maximum(move, 1e-300))
         if np.all(s >= 1.0):
             return dx
-        return dx * s[:, None]
+        return shift + rel * s[:, None]
 
 
 def _f(x: np.ndarray) -> np.ndarray:

@@ -10,11 +10,13 @@ normals and normal forces, for the lagged friction); the step's forces are built
   thickness) and ``b`` IPC's barrier active within ``dhat`` (the other half): a vertex rests between half the
   thickness and the thickness from the surface and never nearer. ``kappa_v = m_v / dt^2`` (so that the
   barrier's stiffness is the vertex's inertia at the scene's step). Its Hessian is ``kappa b'' n n^T`` per
-  vertex (the curvature term ``kappa b' grad^2 phi`` is negative semidefinite on a convex shape and dropped:
-  projected Newton), a diagonal block: the system's fixed pattern holds it.
+  vertex plus the curvature term ``kappa b' grad^2 phi`` (negative semidefinite outside a convex shape; kept
+  where the shape gives ``grad^2 phi``, scaled so that the block stays positive definite: projected Newton), a
+  diagonal block: the system's fixed pattern holds it.
 * :meth:`ObstacleBarrier.fractions`: each vertex's move in a Newton iteration is truncated where its path
-  would close more than :data:`SAFE` of its gap (checked along the path: the shape's exact minimum on the
-  segment, then conservative advancement on the 1-Lipschitz ``phi``), so no iterate crosses or tunnels through
+  would close more than :data:`SAFE` of its gap, or of the barrier's reach for a vertex farther (checked along
+  the path: the shape's exact minimum on the segment, then conservative advancement on the 1-Lipschitz
+  ``phi``), so no iterate crosses or tunnels through
   an obstacle, however thin (the per-vertex displacement bound of Offset Geometric Contact, Chen et al. 2025,
   made exact along the path for primitives).
 * :class:`ObstacleFriction` (dissipative): IPC's lagged smoothed friction, ``D = sum mu lambda f0(|v_t|)``
@@ -42,6 +44,12 @@ from . import barrier
 SAFE = 0.9
 #: The barrier's stiffness per vertex, in units of its mass over the scene's ``dt^2``.
 BARRIER_STIFFNESS = 1.0
+#: A vertex that a Newton direction would take into an obstacle is constrained to arrive at this fraction of the
+#: barrier's reach from the offset (or half its gap, if it is nearer), where the barrier holds it
+#: (:meth:`ObstacleBarrier.normal_targets`).
+ARRIVAL = 0.5
+#: The most of a vertex's inertia (``m / dt^2``) the barrier's curvature term may take from its Hessian block.
+CURVATURE_SHARE = 0.5
 #: Conservative-advancement iterations of the path check (:meth:`ObstacleBarrier.fractions`; stopping short is
 #: safe: the point reached is never too near).
 ADVANCE_ITERATIONS = 20
@@ -81,6 +89,8 @@ class _Stencil(NamedTuple):
     n: np.ndarray
     g: np.ndarray
     kappa: np.ndarray
+    #: the signed distance's Hessian (K, 3, 3, world axes) at a vertex stencil, when asked for and given
+    hess: np.ndarray | None = None
 
 
 class ObstacleBarrier(ConservativeTerm):
@@ -90,8 +100,9 @@ class ObstacleBarrier(ConservativeTerm):
     The gap of an edge is the least ``phi - xi`` along it (the shape's exact segment minimum: a convex
     function of its end points, whose gradient is ``(1 - s) n`` and ``s n`` at the nearest point ``s``), so a
     thin rod between two vertices is felt by the edge across it; edge terms only where the shape needs them
-    (:func:`needs_edges`). The Hessian is Gauss-Newton's ``kappa b'' w w^T n n^T``, exact up to the
-    negative semidefinite curvature term it drops; an edge's off-diagonal block lies on the springs' pattern
+    (:func:`needs_edges`). An edge's Hessian is Gauss-Newton's ``kappa b'' w w^T n n^T``, exact up to the
+    negative semidefinite curvature term it drops (a vertex's keeps it: :meth:`_curvature`); its off-diagonal
+    block lies on the springs' pattern
     (a mesh edge is a structural spring, a grid's diagonal a shear spring) and is left out where it does not
     (:meth:`SystemMatrix.has_blocks <implicit_cloth.assembly.SystemMatrix.has_blocks>`).
     """
@@ -123,17 +134,24 @@ class ObstacleBarrier(ConservativeTerm):
     def _world_normal(self, ob: Obstacle, n: np.ndarray) -> np.ndarray:
         return n @ ob.motion.pose(self.t)[1].T
 
-    def stencils(self, x: np.ndarray, reach: float | None = None) -> list[_Stencil]:
-        """The vertex and edge primitives within ``reach`` (default the barrier's) of each obstacle at ``x``."""
+    def stencils(self, x: np.ndarray, reach: float | None = None, hessian: bool = False) -> list[_Stencil]:
+        """The vertex and edge primitives within ``reach`` (default the barrier's) of each obstacle at ``x``
+        (``hessian``: with the distance's Hessian at the vertices, where the shape gives it)."""
         reach = self.dhat if reach is None else reach
         out = []
         for ob, edged in zip(self.obstacles, self.edged):
             loc = self._local(ob, x)
-            phi, n, _ = ob.shape.closest(loc[self.free])
+            phi, n, c = ob.shape.closest(loc[self.free])
             g = phi - self.xi
             near = g < reach
+            hess = None
+            if hessian and np.any(near):
+                H = ob.shape.distance_hessian(loc[self.free][near], n[near], c[near])
+                if H is not None:
+                    R = ob.motion.pose(self.t)[1]
+                    hess = np.einsum("ab,kbc,dc->kad", R, H, R)
             out.append(_Stencil(self.free[near, None], np.ones((int(near.sum()), 1)),
-                                self._world_normal(ob, n[near]), g[near], self.kappa[near]))
+                                self._world_normal(ob, n[near]), g[near], self.kappa[near], hess))
             if not len(self.edges) or not edged:
                 continue
             e = self.edges
@@ -175,12 +193,15 @@ class ObstacleBarrier(ConservativeTerm):
                 np.add.at(out, st.idx[:, c], st.w[:, c, None] * gn)
 
     def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
-        for st in self.stencils(x):
+        for st in self.stencils(x, hessian=True):
             if not len(st.g):
                 continue
-            gn = (st.kappa * barrier.first(st.g, self.dhat))[:, None] * st.n
+            k1 = st.kappa * barrier.first(st.g, self.dhat)
+            gn = k1[:, None] * st.n
             k2 = st.kappa * barrier.second(st.g, self.dhat)        # d2U/dg2: the Hessian is k2 w w^T n n^T
             nn = st.n[:, :, None] * st.n[:, None, :]
+            if st.hess is not None:
+                self._curvature(st, k1, c_x, system, kw, w)
             m = st.idx.shape[1]
             for a in range(m):
                 np.subtract.at(f, st.idx[:, a], st.w[:, a, None] * gn)
@@ -196,6 +217,24 @@ class ObstacleBarrier(ConservativeTerm):
                         np.subtract.at(kw, st.idx[:, a], (k2 * st.w[:, a] * st.w[:, b] * np.einsum(
                             "ij,ij->i", st.n, w[st.idx[:, b]]))[:, None] * st.n)
 
+    def _curvature(self, st: _Stencil, k1: np.ndarray, c_x: float, system: Any, kw: np.ndarray | None,
+                   w: np.ndarray | None) -> None:
+        """The Hessian's curvature term ``kappa b'(g) d2phi/dx2`` at vertex stencils (negative semidefinite
+        outside a convex shape: the barrier's force turns with the normal as a vertex slides over a curved
+        surface), scaled down where it would take more than :data:`CURVATURE_SHARE` of the vertex's inertia
+        ``m / dt^2`` (``kappa`` over :data:`BARRIER_STIFFNESS`), so the system's diagonal block stays positive
+        definite. Without it Newton's iterations over a thin rod converge linearly."""
+        assert st.hess is not None
+        H = k1[:, None, None] * st.hess                              # d2U/dx2's curvature part (<= 0)
+        lam = -k1 * np.linalg.eigvalsh(st.hess)[:, -1]              # its largest magnitude
+        inertia = st.kappa / BARRIER_STIFFNESS
+        scale = np.minimum(1.0, CURVATURE_SHARE * inertia / np.maximum(lam, 1e-300))   # c_x |H| <= share m
+        H *= scale[:, None, None]
+        i = st.idx[:, 0]
+        np.add.at(system.blocks, system.diag_index[i], c_x * H)
+        if kw is not None and w is not None:
+            np.subtract.at(kw, i, np.einsum("kij,kj->ki", H, w[i]))
+
     # ------------------------------------------------------------------ safe steps
     def fractions(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
         """Per vertex (N,), the largest ``s <= 1`` such that moving the vertices along ``x + s' dx_v``,
@@ -210,7 +249,9 @@ class ObstacleBarrier(ConservativeTerm):
         for (g0, _), ob in zip(self.gaps(x), self.obstacles):
             p0 = self._local(ob, p0w)
             p1 = self._local(ob, p0w + dw)
-            target = self.xi + (1.0 - SAFE) * g0            # phi must stay above this along the path
+            # phi must stay above this along the path: (1 - SAFE) of the gap, of the barrier's reach for a vertex
+            # farther (one arriving from afar reaches the barrier's zone in one move)
+            target = self.xi + (1.0 - SAFE) * np.minimum(g0, self.dhat)
             low = _segment_low(ob.shape, p0, p1)
             near = np.flatnonzero(low < target)
             if len(near):
@@ -229,6 +270,39 @@ class ObstacleBarrier(ConservativeTerm):
         if cut is not None:                 # scaled down as a whole: a prefix of the move just checked
             s *= float(cut[1].min())
         return s
+
+    def normal_targets(self, x: np.ndarray, move: np.ndarray, idx: np.ndarray, full: np.ndarray,
+                       stiffness: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Of the vertices ``idx`` (cut moves ``move``, whole moves ``full``, (N, 3)), those whose cut move ends
+        within the barrier's reach of an obstacle: the vertices, the obstacle's outward normal ``n`` at that end
+        (the nearest obstacle's) and the move along ``n`` that brings each to its arrival gap ``g*`` to first
+        order (exact for the plane): ``n . move + (xi + g* - phi(end))``. ``g*`` is where the barrier holds the
+        vertex against its pull toward where the whole move would take it (``stiffness`` (N,) N/m, the system's
+        along the normal without the barrier: :func:`barrier.equilibrium`), at least twice the path's floor."""
+        idx = np.asarray(idx, dtype=np.int64)
+        idx = idx[self._free_mask[idx]]
+        if not len(idx) or not self.obstacles:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0)
+        end = x[idx] + move[idx]
+        best = np.full(len(idx), np.inf)
+        nrm = np.zeros((len(idx), 3))
+        g0 = np.full(len(idx), np.inf)
+        for ob in self.obstacles:
+            phi, n, _ = ob.shape.closest(self._local(ob, end))
+            nearer = phi < best
+            best = np.where(nearer, phi, best)
+            nrm[nearer] = self._world_normal(ob, n[nearer])
+            g0 = np.where(nearer, ob.shape.distance(self._local(ob, x[idx])) - self.xi, g0)
+        near = best - self.xi < self.dhat
+        idx, nrm, best, g0 = idx[near], nrm[near], best[near], g0[near]
+        g_end = best - self.xi
+        g_free = g_end + np.einsum("ij,ij->i", nrm, full[idx] - move[idx])     # the whole move, to first order
+        kappa = self.kappa[np.searchsorted(self.free, idx)]
+        target = barrier.equilibrium(stiffness[idx], g_free, kappa, self.dhat)
+        floor = (1.0 - SAFE) * np.minimum(np.maximum(g0, 0.0), self.dhat)
+        target = np.clip(target, 2.0 * floor, np.maximum(g0, 2.0 * floor))
+        m = np.einsum("ij,ij->i", nrm, move[idx]) + (target - g_end)
+        return idx, nrm, m
 
     def filter_move(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
         """``dx`` with each vertex's move cut to what its path allows (:meth:`fractions`); ``dx`` itself when
@@ -258,8 +332,9 @@ class ObstacleBarrier(ConservativeTerm):
                 continue
             _, low0 = ob.shape.segment_minimum(a0[cand], a1[cand])
             g0 = low0 - self.xi
-            target = self.xi + (1.0 - SAFE) * g0
-            lin = g0 - speed[cand] > (1.0 - SAFE) * g0           # 1-Lipschitz: the whole move is safe
+            floor = (1.0 - SAFE) * np.minimum(g0, self.dhat)     # as for the vertices (fractions)
+            target = self.xi + floor
+            lin = g0 - speed[cand] > floor                       # 1-Lipschitz: the whole move is safe
             check = np.flatnonzero(~lin)
             if not len(check):
                 continue

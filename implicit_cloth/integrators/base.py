@@ -54,6 +54,8 @@ MINIMIZE_TOLERANCE = 0.1
 MINIMIZE_FLOOR = 1e-3
 #: Passes of the contacts' safe-move filters over a Newton direction before it is scaled down as a whole.
 FILTER_PASSES = 3
+#: Solves of a Newton iteration whose direction a contact cut (:meth:`ImplicitIntegrator._contact_direction`).
+ARRIVAL_ROUNDS = 3
 #: Halvings of a line search before the iteration gives up.
 LINE_SEARCH_HALVINGS = 30
 
@@ -571,7 +573,8 @@ class ImplicitIntegrator(Integrator):
         return self._finish(scheme.x_pred + scheme.beta * v1, v1, t1), info
 
     def minimize(self, state: State, h: float, terms: list[Any], pins: Constraints | None = None,
-                 iterations: int = MINIMIZE_ITERATIONS) -> tuple[State, StepInfo]:
+                 iterations: int = MINIMIZE_ITERATIONS,
+                 done: Callable[[np.ndarray, np.ndarray, float], bool] | None = None) -> tuple[State, StepInfo]:
         """One step as the minimiser of its incremental potential with the extra force ``terms`` (contact,
         friction: :class:`~implicit_cloth.forces.Force` objects) beside the model's own
         (:mod:`implicit_cloth.forces`)::
@@ -580,16 +583,19 @@ class ImplicitIntegrator(Integrator):
 
         Projected Newton: each iteration assembles every force's Hessian blocks at the iterate (the system's
         fixed pattern; the contact terms add diagonal blocks, and self-contact a coupling the CG's product adds),
-        solves ``A d = -grad Phi`` by the filtered PCG with the pins exact (their components 0), cuts each
+        solves ``A d = -grad Phi`` by the filtered PCG with the pins exact (their components 0) and cuts each
         vertex's part of the direction to what the terms allow its path (``filter_move(x, c_v d)``: no iterate
-        crosses a contact; where the cut direction no longer descends, the cut vertices are held and the
-        others' direction solved again), and backtracks until ``Phi`` decreases enough (Armijo). The first
-        iterate is the start velocity cut the same way from ``x_pred``. Stops when the Newton correction's
-        mass-weighted rms speed is below :data:`MINIMIZE_TOLERANCE` of the step's velocity change or
-        :data:`MINIMIZE_FLOOR`, or after ``iterations``. Every iterate lowers ``Phi``, in which contact is
-        conservative and friction dissipative; backward Euler on a potential that is not convex (compressed
-        springs, a barrier over a curved surface) can still gain energy, which the step's energy balance
-        checks.
+        crosses a contact). A cut direction that still lowers ``Phi`` at full length is taken; otherwise the
+        contacts enter the direction (:meth:`_contact_direction`: a vertex arriving at an obstacle constrained
+        along its normal to where the barrier will hold it, the rest solved again). Then backtracking until
+        ``Phi`` decreases enough (Armijo). The first iterate is the start velocity cut the same way from
+        ``x_pred``. Stops when the Newton correction's mass-weighted rms speed is below
+        :data:`MINIMIZE_TOLERANCE` of the step's velocity change or :data:`MINIMIZE_FLOOR`, when ``done(x1, v,
+        decrement)`` says so (the caller's test of the end state and of Newton's predicted decrease of ``Phi``,
+        half the slope: the simulator's energy balance), or after ``iterations``. Every iterate lowers ``Phi``, in
+        which contact is conservative and friction dissipative; backward Euler on a potential that is not convex
+        (compressed springs, a barrier over a curved surface) can still gain energy, which the step's energy
+        balance checks.
         """
         c = self._pins if pins is None else pins
         info = StepInfo(newton_iterations=0)
@@ -613,6 +619,7 @@ class ImplicitIntegrator(Integrator):
             x = x0 + cv * v
             t0 = time.perf_counter()
             A, f, _ = self.model.linearize(x, v, t1, scheme.c_x, cv, None, lazy=True)
+            diag0 = sysm.blocks[sysm.diag_index] if terms else None     # without the contacts' blocks (a copy)
             for term in terms:
                 term.linearize(x, v, t1, scheme.c_x, cv, None, sysm, None, f)
             sysm.finalize_lazy()
@@ -631,25 +638,14 @@ class ImplicitIntegrator(Integrator):
 
             a = 1.0
             cut = bounds.cut(x, d)
-            if cut is not d:
-                # the direction with each vertex cut to what its path allows, if it still descends; else the
-                # Newton direction of the other vertices, those held (a descent direction), scaled down until
-                # every path allows it: held, a vertex against a contact no longer holds the others back
-                slope_t = float(np.dot(filt.apply(R.copy().reshape(-1)), cut.reshape(-1)))
-                if np.isfinite(slope_t) and slope_t < 0.0:
-                    d, slope = cut, slope_t
-                else:
-                    # held: the vertices cut more than the move as a whole was scaled (a global bound scales all)
-                    norm = np.sqrt(np.einsum("ij,ij->i", d, d))
-                    ratio = np.sqrt(np.einsum("ij,ij->i", cut, cut)) / np.maximum(norm, 1e-300)
-                    held = np.flatnonzero((norm > 0) & (ratio < (1.0 - 1e-9) * float(ratio.max())))
-                    sub = Filter(self.model.n, np.union1d(c.pinned, held))
-                    d = self._solve(A, -R, np.zeros_like(v), sub, info,
-                                    tolerance=max(self.tolerance, NEWTON_FORCING), coupling=coupling)
-                    slope = float(np.dot(sub.apply(R.copy().reshape(-1)), d.reshape(-1)))
-                    if not np.isfinite(slope) or slope >= 0.0:
-                        break
-                    a = bounds.uniform(x, d)
+            slope_c = float(np.dot(filt.apply(R.copy().reshape(-1)), cut.reshape(-1))) if cut is not d else 0.0
+            if cut is not d and slope_c < 0.0 and phi(v + cut) <= phi(v) + 1e-4 * slope_c:
+                d, slope = cut, slope_c          # the cut direction lowers the potential whole: taken as it is
+            elif cut is not d:
+                found = self._contact_direction(A, R, x, d, cut, c, bounds, filt, info, coupling, diag0)
+                if found is None:
+                    break
+                d, slope, a = found
             a = _armijo(phi, v, d, a, slope)
             if a <= 0.0:
                 break
@@ -660,8 +656,90 @@ class ImplicitIntegrator(Integrator):
             change = np.sqrt(float(np.einsum("ij,ij->", M * (v - state.v), v - state.v)))
             if step <= max(MINIMIZE_TOLERANCE * change, floor):
                 break
+            if done is not None and done(x0 + scheme.beta * v, v, -0.5 * slope):
+                break
         x1 = x0 + scheme.beta * v
         return self._finish(x1, v, t1), info
+
+    def _contact_direction(self, A: Any, R: np.ndarray, x: np.ndarray, d: np.ndarray, cut: np.ndarray,
+                           c: Constraints, bounds: "_PathBounds", filt: Filter, info: StepInfo,
+                           coupling: list[Any], contact_free_diag: np.ndarray | None = None
+                           ) -> tuple[np.ndarray, float, float] | None:
+        """A Newton direction ``d`` some of whose vertices' paths a contact cut (``cut``: :meth:`_PathBounds.cut`),
+        made one the contacts allow: the vertices cut against an obstacle constrained in its normal only, to
+        arrive within the barrier's reach (:meth:`ObstacleBarrier.normal_targets
+        <implicit_cloth.contact.obstacles.ObstacleBarrier.normal_targets>`), free to slide; the others cut
+        (self-contact) prescribed their cut move; the rest of the cloth's direction solved again with those
+        (the filtered PCG's prescribed components, BW98 section 5.3). Cutting a direction vertex by vertex
+        leaves the uncut vertices moving as if the cut ones moved all the way (springs stretched: the line search
+        then backtracks to a few percent); solved again, the cloth's direction accounts for the contacts.
+
+        Returns the direction, its slope and the largest step its paths allow; None when no descent direction
+        was found. Falls back to the cut direction (when it descends) or to the cut vertices held still."""
+        n = self.model.n
+        cv = bounds.c_v
+        norm = np.sqrt(np.einsum("ij,ij->i", d, d))
+        ratio = np.sqrt(np.einsum("ij,ij->i", cut, cut)) / np.maximum(norm, 1e-300)
+        moved = norm > 0
+        cutv = np.flatnonzero(moved & (ratio < 1.0 - 1e-9))
+        R_free = filt.apply(R.copy().reshape(-1))
+        tol = max(self.tolerance, NEWTON_FORCING)
+        if len(cutv) and not bounds.scaled and ARRIVAL_ROUNDS > 0:
+            # the cut vertices constrained and the rest solved again, the vertices that direction's paths cut added,
+            # until a direction is whole or after ARRIVAL_ROUNDS solves
+            pos, move, full = np.zeros((0,), dtype=np.int64), cv * cut, d
+            # each vertex's stiffness (N/m) along any direction, from the system's diagonal block without the
+            # contact terms (the inertia and the springs): the smallest eigenvalue, over c_x
+            sysm = self.model.system
+            blocks = sysm.blocks[sysm.diag_index] if contact_free_diag is None else contact_free_diag
+            stiffness = np.linalg.eigvalsh(blocks)[:, 0] / (cv * cv)
+            nrm_all, mn_all = np.zeros((0, 3)), np.zeros(0)
+            fixed, fixed_z = np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+            last: np.ndarray | None = None
+            for _round in range(ARRIVAL_ROUNDS):
+                idx, nrm, move_n = bounds.normal_targets(x, move, np.setdiff1d(cutv, np.union1d(pos, fixed)),
+                                                         cv * full, stiffness)
+                others = np.setdiff1d(cutv, np.union1d(np.union1d(pos, fixed), idx))
+                pos, nrm_all, mn_all = (np.concatenate([pos, idx]), np.concatenate([nrm_all, nrm]),
+                                        np.concatenate([mn_all, move_n]))
+                fixed, fixed_z = np.concatenate([fixed, others]), np.concatenate([fixed_z, move[others] / cv])
+                z = np.zeros((n, 3))
+                z[fixed] = fixed_z
+                z[pos] = nrm_all * (mn_all / cv)[:, None]
+                S = np.eye(3)[None] - nrm_all[:, :, None] * nrm_all[:, None, :]
+                sub = Filter(n, np.union1d(c.pinned, fixed), pos, S)
+                d2 = self._solve(A, -R, z, sub, info, tolerance=tol, coupling=coupling)
+                slope2 = float(np.dot(R_free, d2.reshape(-1)))
+                if not np.isfinite(slope2) or slope2 >= 0.0:
+                    break
+                cut2 = bounds.cut(x, d2)
+                if cut2 is d2:
+                    return d2, slope2, 1.0
+                if bounds.scaled:
+                    break
+                norm2 = np.sqrt(np.einsum("ij,ij->i", d2, d2))
+                r2 = np.sqrt(np.einsum("ij,ij->i", cut2, cut2)) / np.maximum(norm2, 1e-300)
+                new = np.setdiff1d(np.flatnonzero((norm2 > 0) & (r2 < 1.0 - 1e-9)), np.union1d(pos, fixed))
+                last = cut2
+                if not len(new):
+                    break
+                cutv, move, full = new, cv * cut2, d2
+            if last is not None:        # the last solve's direction, cut where it still is, if it descends
+                slope3 = float(np.dot(R_free, last.reshape(-1)))
+                if np.isfinite(slope3) and slope3 < 0.0:
+                    return last, slope3, 1.0
+        # the cut direction, if it still descends; else the Newton direction of the other vertices, the cut ones
+        # held, scaled down until every path allows it
+        slope_t = float(np.dot(R_free, cut.reshape(-1)))
+        if np.isfinite(slope_t) and slope_t < 0.0:
+            return cut, slope_t, 1.0
+        held = np.flatnonzero(moved & (ratio < (1.0 - 1e-9) * float(ratio.max())))
+        sub = Filter(n, np.union1d(c.pinned, held))
+        d = self._solve(A, -R, np.zeros_like(d), sub, info, tolerance=tol, coupling=coupling)
+        slope = float(np.dot(sub.apply(R.copy().reshape(-1)), d.reshape(-1)))
+        if not np.isfinite(slope) or slope >= 0.0:
+            return None
+        return d, slope, bounds.uniform(x, d)
 
     def _line_minimum(self, x: np.ndarray, v: np.ndarray, d: np.ndarray, c: Constraints, cv: float, lin: float,
                       quad: float, t1: float, slope: float) -> float:
@@ -743,10 +821,13 @@ class _PathBounds:
     def __init__(self, terms: list[Any], c_v: float) -> None:
         self.terms = [f for f in terms if hasattr(f, "filter_move")]
         self.c_v = c_v
+        #: whether the last :meth:`cut` scaled the direction as a whole (its filters did not settle)
+        self.scaled = False
 
     def cut(self, x: np.ndarray, d: np.ndarray) -> np.ndarray:
         """``d`` with each vertex's part cut to what every filter allows from ``x`` (``d`` itself if none cuts);
         after :data:`FILTER_PASSES` passes that still cut, scaled down as a whole instead."""
+        self.scaled = False
         if not self.terms:
             return d
         move = self.c_v * d
@@ -760,7 +841,25 @@ class _PathBounds:
             if not changed:
                 return move / self.c_v if cut else d
             cut = True
+        self.scaled = True
         return self.uniform(x, d) * d
+
+    def normal_targets(self, x: np.ndarray, move: np.ndarray, idx: np.ndarray, full: np.ndarray,
+                       stiffness: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Of the vertices ``idx`` whose ``move`` (cut) ends near an obstacle: those vertices, the obstacle's
+        normal there and the move along it that brings each to its arrival gap (the terms'
+        ``normal_targets``; a vertex two terms claim keeps the first's)."""
+        out_i, out_n, out_m = [np.zeros(0, dtype=np.int64)], [np.zeros((0, 3))], [np.zeros(0)]
+        left = np.asarray(idx, dtype=np.int64)
+        for f in self.terms:
+            if not hasattr(f, "normal_targets") or not len(left):
+                continue
+            i, nrm, m = f.normal_targets(x, move, left, full, stiffness)
+            out_i.append(i)
+            out_n.append(nrm)
+            out_m.append(m)
+            left = np.setdiff1d(left, i)
+        return np.concatenate(out_i), np.concatenate(out_n), np.concatenate(out_m)
 
     def allowed(self, x: np.ndarray, d: np.ndarray) -> bool:
         move = self.c_v * d
