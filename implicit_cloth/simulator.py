@@ -313,16 +313,18 @@ class Simulator:
         integ = self.integrator
         assert isinstance(integ, ImplicitIntegrator)
         t0 = time.perf_counter()
-        contacts = col.detect(state.x) if col is not None else None
-        terms = col.terms(contacts) if col is not None else []
+        contacts = col.detect(state.x, state.t, h) if col is not None else None
+        terms = col.terms(contacts, state.x, state.t, h) if col is not None else []
         if cloth is not None:
             terms.append(cloth.term(state.x))
         t_detect = time.perf_counter() - t0
         new, info = integ.minimize(state, h, terms, pins)
         t0 = time.perf_counter()
         if np.all(np.isfinite(new.x)):
-            barriers = [f for f in terms if f.conservative]
-            info.contact_work = sum(f.energy(state.x) - f.energy(new.x) for f in barriers)
+            # what the barriers gave back (and moving obstacles' work through them and friction)
+            info.contact_work = sum(f.step_work(state.x, new.x, new.v, h) if hasattr(f, "step_work")
+                                    else f.energy(state.x) - f.energy(new.x) for f in terms
+                                    if f.conservative or hasattr(f, "step_work"))
         if col is not None and contacts is not None:
             depth = max((float(col.depths(k, new.x, new.t)[col.free].max(initial=0.0))
                          for k in range(len(col.obstacles))), default=0.0)

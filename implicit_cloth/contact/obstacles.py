@@ -19,14 +19,26 @@ normals and normal forces, for the lagged friction); the step's forces are built
   made exact along the path for primitives).
 * :class:`ObstacleFriction` (dissipative): IPC's lagged smoothed friction, ``D = sum mu lambda f0(|v_t|)``
   with the normal force ``lambda`` and the tangent plane of the step's start, ``f0`` C1 with
-  ``f0' = f1(s) = 2 s / eps - s^2 / eps^2`` below the sliding speed ``eps``: Coulomb's law above it.
+  ``f0' = f1(s) = 2 s / eps - s^2 / eps^2`` below the sliding speed ``eps``: Coulomb's law above it. ``v_t`` is
+  the cloth's velocity relative to the obstacle's surface (the obstacle's velocity at the contact, lagged).
+* Moving and keyframed obstacles: the potential is against each obstacle's pose at the step's end ``t + h``
+  (:meth:`ObstacleBarrier.at`), every iterate's path checked against that pose. The first iterate starts the
+  vertices (and, for obstacles whose edges are felt, the edges) that the obstacle's motion over the step could
+  reach, held at their predicted positions, carried rigidly with it from their step-start positions
+  (:meth:`ObstacleBarrier.start`): their gap at the end pose is the one they had at the step's start. So every
+  step ends outside every obstacle, and an obstacle never passes through the cloth within a step, however fast.
+  The energy balance books the barrier's stored energy (each end at its own pose) and the obstacle's work on
+  the cloth, the end-of-step contact and friction forces times its displacement over the step
+  (:meth:`ObstacleBarrier.step_work`, :meth:`ObstacleFriction.step_work`).
 
-Limits of this first version: primitive obstacles (sphere, plane, box, capsule, cone) that do not move;
-vertices only (a cloth edge can graze a sharp box edge or cone tip between its vertices); self-contact not yet.
+Limits: primitive obstacles (sphere, plane, box, capsule, cone; not meshes); vertices and edges against the
+obstacle (a box corner can poke through a triangle's interior); a vertex carried by one moving obstacle into
+another is not resolved (that step's energy is infinite, which the line search refuses).
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -54,13 +66,15 @@ FRICTION_SPEED = 1e-3
 @dataclass(frozen=True)
 class Contacts:
     """The step's obstacle contacts at its start: vertex, obstacle, outward normal (K, 3), normal force
-    ``lambda`` (K,) N and friction coefficient (K,)."""
+    ``lambda`` (K,) N, friction coefficient (K,) and the obstacle's velocity at the contact over the step
+    (K, 3) m/s (None: still)."""
 
     vertex: np.ndarray
     obstacle: np.ndarray
     normal: np.ndarray
     force: np.ndarray
     mu: np.ndarray
+    velocity: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.vertex)
@@ -74,13 +88,15 @@ def _add_diagonal_blocks(system: Any, idx: np.ndarray, blocks: np.ndarray) -> No
 class _Stencil(NamedTuple):
     """Contact primitives of one kind near one obstacle: their cloth vertices ``idx`` (K, m), the weights
     ``w`` (K, m) of the closest point ``p = sum_c w_c x_idx_c``, the outward normal there (K, 3), the gap
-    ``g = phi(p) - xi`` (K,) and the barrier's stiffness (K,)."""
+    ``g = phi(p) - xi`` (K,), the barrier's stiffness (K,) and the obstacle."""
 
     idx: np.ndarray
     w: np.ndarray
     n: np.ndarray
     g: np.ndarray
     kappa: np.ndarray
+    #: the obstacle's index
+    obstacle: int = 0
 
 
 class ObstacleBarrier(ConservativeTerm):
@@ -105,6 +121,11 @@ class ObstacleBarrier(ConservativeTerm):
         self._free_mask = np.asarray(free, dtype=bool)
         self.kappa = kappa[self.free]
         self.xi, self.dhat, self.t = float(xi), float(dhat), float(t)
+        #: the step's start time and positions (:meth:`at`); the potential is at ``t``, the step's end
+        self.t0 = self.t
+        self.x_start: np.ndarray | None = None
+        #: which obstacles move (their start differs from their end pose within a step)
+        self.moving = [bool(ob.motion.moving) for ob in obstacles]
         e = np.zeros((0, 2), dtype=np.int64) if edges is None else np.asarray(edges, dtype=np.int64)
         rest = np.zeros((len(free), 3)) if rest is None else rest
         e = e[self._free_mask[e[:, 0]] | self._free_mask[e[:, 1]]]          # an edge with a free end
@@ -117,23 +138,31 @@ class ObstacleBarrier(ConservativeTerm):
         self.kappa_edge = (kappa[e[:, 0]] + kappa[e[:, 1]]) / 6.0
 
     # ------------------------------------------------------------------ geometry
-    def _local(self, ob: Obstacle, x: np.ndarray) -> np.ndarray:
-        return ob.motion.to_local(x, self.t)
+    def _local(self, ob: Obstacle, x: np.ndarray, t: float | None = None) -> np.ndarray:
+        return ob.motion.to_local(x, self.t if t is None else t)
 
-    def _world_normal(self, ob: Obstacle, n: np.ndarray) -> np.ndarray:
-        return n @ ob.motion.pose(self.t)[1].T
+    def _world_normal(self, ob: Obstacle, n: np.ndarray, t: float | None = None) -> np.ndarray:
+        return n @ ob.motion.pose(self.t if t is None else t)[1].T
 
-    def stencils(self, x: np.ndarray, reach: float | None = None) -> list[_Stencil]:
-        """The vertex and edge primitives within ``reach`` (default the barrier's) of each obstacle at ``x``."""
+    def at(self, x0: np.ndarray, t0: float, t1: float) -> "ObstacleBarrier":
+        """This barrier for the step from ``x0`` at ``t0`` to ``t1``: its potential against the obstacles' poses
+        at ``t1`` (:meth:`start` and :meth:`step_work` read the rest)."""
+        out = copy.copy(self)
+        out.t, out.t0, out.x_start = float(t1), float(t0), np.asarray(x0)
+        return out
+
+    def stencils(self, x: np.ndarray, reach: float | None = None, t: float | None = None) -> list[_Stencil]:
+        """The vertex and edge primitives within ``reach`` (default the barrier's) of each obstacle at ``x``,
+        the obstacles at their pose at ``t`` (default the potential's, the step's end)."""
         reach = self.dhat if reach is None else reach
         out = []
-        for ob, edged in zip(self.obstacles, self.edged):
-            loc = self._local(ob, x)
+        for j, (ob, edged) in enumerate(zip(self.obstacles, self.edged)):
+            loc = self._local(ob, x, t)
             phi, n, _ = ob.shape.closest(loc[self.free])
             g = phi - self.xi
             near = g < reach
             out.append(_Stencil(self.free[near, None], np.ones((int(near.sum()), 1)),
-                                self._world_normal(ob, n[near]), g[near], self.kappa[near]))
+                                self._world_normal(ob, n[near], t), g[near], self.kappa[near], j))
             if not len(self.edges) or not edged:
                 continue
             e = self.edges
@@ -153,20 +182,22 @@ class ObstacleBarrier(ConservativeTerm):
             inner = g_e < reach
             k = cand[inner]
             out.append(_Stencil(e[k], np.stack([1.0 - s[inner], s[inner]], axis=1),
-                                self._world_normal(ob, n_e[inner]), g_e[inner], self.kappa_edge[k]))
+                                self._world_normal(ob, n_e[inner], t), g_e[inner], self.kappa_edge[k], j))
         return out
 
-    def gaps(self, x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Per obstacle: each free vertex's gap ``phi - xi`` (m) and the outward normal (world axes)."""
+    def gaps(self, x: np.ndarray, t: float | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per obstacle: each free vertex's gap ``phi - xi`` (m) and the outward normal (world axes), the
+        obstacles at their pose at ``t`` (default the potential's)."""
         out = []
         for ob in self.obstacles:
-            phi, n, _ = ob.shape.closest(self._local(ob, x[self.free]))
-            out.append((phi - self.xi, self._world_normal(ob, n)))
+            phi, n, _ = ob.shape.closest(self._local(ob, x[self.free], t))
+            out.append((phi - self.xi, self._world_normal(ob, n, t)))
         return out
 
     # ------------------------------------------------------------------ the Force interface
-    def energy(self, x: np.ndarray) -> float:
-        return float(sum(np.dot(st.kappa, barrier.value(st.g, self.dhat)) for st in self.stencils(x)))
+    def energy(self, x: np.ndarray, t: float | None = None) -> float:
+        """The stored energy at ``x``, the obstacles at their pose at ``t`` (default the potential's)."""
+        return float(sum(np.dot(st.kappa, barrier.value(st.g, self.dhat)) for st in self.stencils(x, t=t)))
 
     def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
         for st in self.stencils(x):
@@ -207,12 +238,13 @@ class ObstacleBarrier(ConservativeTerm):
         move is scaled down, a prefix of one that passed). 1 for pinned vertices."""
         s = np.ones(len(x))
         p0w, dw = x[self.free], dx[self.free]
+        moves = np.any(dw != 0.0, axis=1)          # a vertex that does not move crosses nothing
         for (g0, _), ob in zip(self.gaps(x), self.obstacles):
             p0 = self._local(ob, p0w)
             p1 = self._local(ob, p0w + dw)
             target = self.xi + (1.0 - SAFE) * g0            # phi must stay above this along the path
             low = _segment_low(ob.shape, p0, p1)
-            near = np.flatnonzero(low < target)
+            near = np.flatnonzero((low < target) & moves)
             if len(near):
                 adv = _advance(ob.shape, p0[near], p1[near] - p0[near], target[near], g0[near] + self.xi)
                 s[self.free[near]] = np.minimum(s[self.free[near]], adv)
@@ -288,6 +320,109 @@ class ObstacleBarrier(ConservativeTerm):
             return None
         return np.concatenate(bad_e), np.concatenate(bad_f)
 
+    # ------------------------------------------------------------------ moving obstacles
+    def start(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+        """The first iterate's move ``dx`` from ``x`` (the scheme's predicted positions, ``dx`` already cut by
+        :meth:`filter_move`) with every vertex a moving obstacle could pass through during the step carried
+        with it instead: such a vertex starts at its step-start position moved rigidly from the obstacle's
+        start pose to its end pose (``T1 T0^-1 x_start``), so its gap to that obstacle at the end pose is the
+        gap it had at the step's start, > 0 (the previous step ended outside every obstacle's pose at this
+        step's start). ``dx`` itself when nothing is carried.
+
+        A vertex is carried when the least gap of its predicted position held still, along the obstacle's
+        motion over ``[t0, t1]``, can be <= 0 (:meth:`_swept`: in the obstacle's frame the held point moves on
+        a curve; the shape's exact minimum on its chord between keyframes, less the chord's deviation bound
+        ``alpha max |x - c|`` for a turn of ``alpha``); for an obstacle whose edges are felt, both ends of an
+        edge whose nearer end's bound is within half the edge of the offset (``phi`` is 1-Lipschitz: every
+        point of the edge is then cleared), and both ends of any edge the carried start still leaves within
+        the offset at the end pose (until none; a carried edge is a rigid copy of a step-start edge, outside).
+        The vertices not carried start where the cut move takes them from a predicted position that no pose of
+        the obstacle during the step reaches: outside its end pose, and every later iterate stays outside
+        (:meth:`fractions`), so the step ends outside. Limit: a vertex carried by one obstacle into another
+        that moves too is left there (the step's energy is then infinite, which the line search refuses)."""
+        if self.x_start is None or not any(self.moving):
+            return dx
+        n = len(x)
+        y = x + dx
+        carried = np.zeros(n, dtype=bool)
+        e = self.edges
+        for k, ob in enumerate(self.obstacles):
+            if not self.moving[k]:
+                continue
+            low = np.full(n, np.inf)
+            low[self.free] = self._swept(ob, x[self.free])
+            take = np.zeros(n, dtype=bool)
+            take[self.free] = low[self.free] <= self.xi
+            if self.edged[k] and len(e):
+                half = 0.5 * np.sqrt(np.einsum("ij,ij->i", x[e[:, 1]] - x[e[:, 0]], x[e[:, 1]] - x[e[:, 0]]))
+                near = np.minimum(low[e[:, 0]], low[e[:, 1]]) - half <= self.xi
+                take[e[near].ravel()] = True
+            take &= self._free_mask & ~carried
+            if np.any(take):
+                y[take] = self._carry(ob, self.x_start[take])
+                carried |= take
+            if not (self.edged[k] and len(e)):
+                continue
+            for _ in range(len(e)):                      # edges the carried start leaves within the offset
+                a0, a1 = self._local(ob, y[e[:, 0]]), self._local(ob, y[e[:, 1]])
+                _, low_e = ob.shape.segment_minimum(a0, a1)
+                grow = np.zeros(n, dtype=bool)
+                grow[e[low_e <= self.xi].ravel()] = True
+                grow &= self._free_mask & ~carried
+                if not np.any(grow):
+                    break
+                y[grow] = self._carry(ob, self.x_start[grow])
+                carried |= grow
+        return y - x if np.any(carried) else dx
+
+    def _carry(self, ob: Obstacle, p: np.ndarray) -> np.ndarray:
+        """World points at the step's start moved with the obstacle to its end pose: ``T1 T0^-1 p``."""
+        return ob.motion.to_world(ob.motion.to_local(p, self.t0), self.t)
+
+    def _swept(self, ob: Obstacle, p: np.ndarray) -> np.ndarray:
+        """A lower bound (K,) of ``phi`` at the world points ``p`` held still while the obstacle moves from its
+        pose at ``t0`` to ``t1``. Piece by piece between the keyframes inside the step (where the centre moves
+        at a constant velocity and the frame turns at a constant angular velocity ``omega``): the local points
+        ``q(tau) = R^T (p - c)`` differ from their chord by at most ``alpha max(|p - c_a|, |p - c_b|)``
+        (``|R(tau) - R_a| <= alpha = |omega| (b - a)``), and ``phi`` is 1-Lipschitz, so the chord's exact
+        minimum less that bound is a lower bound along the curve."""
+        times = np.asarray(getattr(ob.motion, "times", ()), dtype=float)
+        knots = np.concatenate([[self.t0], times[(times > self.t0) & (times < self.t)], [self.t]])
+        low = np.full(len(p), np.inf)
+        for a, b in zip(knots[:-1], knots[1:]):
+            qa, qb = ob.motion.to_local(p, a), ob.motion.to_local(p, b)
+            chord = _segment_low(ob.shape, qa, qb)
+            _, omega = ob.motion.twist(0.5 * (a + b))
+            alpha = float(np.linalg.norm(omega)) * (b - a)
+            if alpha > 0.0:
+                ca, cb = ob.motion.pose(a)[0], ob.motion.pose(b)[0]
+                chord = chord - alpha * np.maximum(np.linalg.norm(p - ca, axis=1), np.linalg.norm(p - cb, axis=1))
+            low = np.minimum(low, chord)
+        return low
+
+    def displacement(self, ob: Obstacle, p: np.ndarray) -> np.ndarray:
+        """The step's displacement (K, 3) of the obstacle's material points at world ``p`` at its end:
+        ``p - T0 T1^-1 p`` (0 for an obstacle that does not move)."""
+        return p - ob.motion.to_world(ob.motion.to_local(p, self.t), self.t0)
+
+    def step_work(self, x0: np.ndarray, x1: np.ndarray, v1: np.ndarray, h: float) -> float:
+        """The energy the step's balance books for the barrier, J: what it gave back,
+        ``U(x0; T0) - U(x1; T1)`` (each against the obstacles' pose at its time), plus the work the moving
+        obstacles did on the cloth through it: ``U`` is a function of the cloth's position relative to the
+        obstacle, so moving the obstacle by ``delta`` at a contact changes it by ``F . delta`` (``F =
+        -dU/dx`` the contact force on the cloth), here the end-of-step force times the step's displacement of
+        the obstacle's material point at the contact (backward Euler's quadrature)."""
+        work = self.energy(x0, self.t0) - self.energy(x1)
+        if not any(self.moving):
+            return work
+        for st in self.stencils(x1):
+            if not len(st.g) or not self.moving[st.obstacle]:
+                continue
+            p = np.einsum("kc,kcj->kj", st.w, x1[st.idx])
+            f = -(st.kappa * barrier.first(st.g, self.dhat))[:, None] * st.n      # on the cloth, N
+            work += float(np.einsum("ij,ij->", f, self.displacement(self.obstacles[st.obstacle], p)))
+        return work
+
     def active(self, x: np.ndarray) -> int:
         """Vertex and edge primitives within the barrier's reach at ``x``."""
         return int(sum(len(st.g) for st in self.stencils(x)))
@@ -334,7 +469,9 @@ def _advance(shape: Any, p0: np.ndarray, d: np.ndarray, target: np.ndarray, scal
 
 class ObstacleFriction:
     """IPC's lagged smoothed friction on the contacts of the step's start (a dissipative
-    :class:`~implicit_cloth.forces.Force`); the obstacles do not move, so the sliding velocity is ``v_t``."""
+    :class:`~implicit_cloth.forces.Force`): the sliding velocity is the cloth's relative to the obstacle's surface,
+    ``v_t = P (v - u)`` with the obstacle's velocity ``u`` at the contact over the step (lagged like the normal:
+    :attr:`Contacts.velocity`; 0 for a still obstacle)."""
 
     name = "friction"
     conservative = False
@@ -347,11 +484,22 @@ class ObstacleFriction:
         self.n = contacts.normal[keep]
         self.scale = (contacts.mu * contacts.force)[keep]      # mu lambda, N
         self.eps = float(eps)
+        self.u = None if contacts.velocity is None else contacts.velocity[keep]
 
     def _tangent(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        u = v[self.idx]
+        u = v[self.idx] if self.u is None else v[self.idx] - self.u
         vt = u - np.einsum("ij,ij->i", u, self.n)[:, None] * self.n
         return vt, np.sqrt(np.einsum("ij,ij->i", vt, vt))
+
+    def step_work(self, x0: np.ndarray, x1: np.ndarray, v1: np.ndarray, h: float) -> float:
+        """The moving obstacles' work on the cloth through friction in the step, J: the end-of-step friction force
+        times the obstacle's displacement ``h u`` at each contact (the rest of the friction's power, against the
+        relative velocity, is dissipated)."""
+        if self.u is None or not len(self.idx):
+            return 0.0
+        vt, s = self._tangent(v1)
+        fc = -(self.scale * self._over_s(s))[:, None] * vt                  # each contact's force on the cloth
+        return h * float(np.einsum("ij,ij->", fc, self.u))
 
     def energy(self, x: np.ndarray) -> float:
         return 0.0
@@ -405,18 +553,17 @@ class ObstacleContact:
     Raises
     ------
     SceneError
-        Naming the obstacle, for a mesh or moving obstacle (not yet supported by this method) and for free
-        cloth vertices that start within half the thickness of an obstacle.
+        Naming the obstacle, for a mesh obstacle (not yet supported by this method) and for free cloth vertices
+        that start within half the thickness of an obstacle.
     """
 
     def __init__(self, obstacles: list[dict[str, Any]], settings: dict[str, Any], model: Any, dt: float) -> None:
         self.obstacles = [Obstacle.from_spec(s) for s in obstacles]
         for k, ob in enumerate(self.obstacles):
-            if isinstance(ob.shape, MeshShape) or ob.motion.moving:
-                what = "a mesh" if isinstance(ob.shape, MeshShape) else "a moving obstacle"
-                raise SceneError(f"obstacles[{k}]: collision.method = 'barrier' supports primitive obstacles that "
-                                 f"do not move; this is {what} (use collision.method = 'rounds'), got "
-                                 f"{ob.describe()}")
+            if isinstance(ob.shape, MeshShape):
+                raise SceneError(f"obstacles[{k}].shape: collision.method = 'barrier' supports primitive obstacles "
+                                 f"(sphere, plane, box, capsule, cone), not yet meshes (use collision.method = "
+                                 f"'rounds'), got 'mesh' ({ob.describe()})")
         self.thickness = float(settings["thickness"])
         self.xi = self.dhat = 0.5 * self.thickness
         eps = float(settings.get("friction_speed", FRICTION_SPEED))
@@ -443,23 +590,35 @@ class ObstacleContact:
     def reset(self) -> None:
         """Nothing is carried from step to step."""
 
-    def detect(self, x: np.ndarray) -> Contacts:
-        """The contacts at ``x`` (the step's start): vertices within the barrier's reach, their normals and
-        normal forces ``kappa |b'(gap)|``."""
-        vs, obs, ns, lams, mus = [], [], [], [], []
-        for k, (g, n) in enumerate(self.barrier.gaps(x)):
+    def detect(self, x: np.ndarray, t: float = 0.0, h: float = 0.0) -> Contacts:
+        """The contacts at ``x`` (the step's start, the obstacles at their pose at ``t``): vertices within the
+        barrier's reach, their normals and normal forces ``kappa |b'(gap)|``, and the obstacle's velocity at
+        each over the step of ``h`` (its displacement there over ``h``; None when no obstacle moves)."""
+        vs, obs, ns, lams, mus, us = [], [], [], [], [], []
+        bar = self.barrier.at(x, t, t + h)
+        for k, (g, n) in enumerate(bar.gaps(x, t)):
             on = g < self.dhat
-            vs.append(self.barrier.free[on])
+            idx = bar.free[on]
+            vs.append(idx)
             obs.append(np.full(int(on.sum()), k))
             ns.append(n[on])
-            lams.append(-self.barrier.kappa[on] * barrier.first(g[on], self.dhat))
+            lams.append(-bar.kappa[on] * barrier.first(g[on], self.dhat))
             mus.append(np.full(int(on.sum()), self.obstacles[k].friction))
+            if bar.moving[k] and h > 0:     # the material point at x at t, over the step: (T1 T0^-1 x - x) / h
+                us.append((bar._carry(self.obstacles[k], x[idx]) - x[idx]) / h)
+            else:
+                us.append(np.zeros((len(idx), 3)))
+        moving = any(bar.moving) and h > 0
         return Contacts(np.concatenate(vs), np.concatenate(obs), np.concatenate(ns).reshape(-1, 3),
-                        np.concatenate(lams), np.concatenate(mus))
+                        np.concatenate(lams), np.concatenate(mus),
+                        np.concatenate(us).reshape(-1, 3) if moving else None)
 
-    def terms(self, contacts: Contacts) -> list[Any]:
-        """The step's contact forces: the barrier, and the friction of ``contacts`` where it has any."""
-        out: list[Any] = [self.barrier]
+    def terms(self, contacts: Contacts, x0: np.ndarray | None = None, t: float = 0.0,
+              h: float = 0.0) -> list[Any]:
+        """The step's contact forces: the barrier against the obstacles' poses at the step's end ``t + h`` (from
+        ``x0`` at ``t``: :meth:`ObstacleBarrier.at`), and the friction of ``contacts`` where it has any."""
+        bar = self.barrier if x0 is None else self.barrier.at(x0, t, t + h)
+        out: list[Any] = [bar]
         if len(contacts) and np.any(contacts.mu > 0):
             out.append(ObstacleFriction(contacts, self.eps))
         return out
