@@ -31,21 +31,28 @@ normals and normal forces, for the lagged friction); the step's forces are built
   the cloth, the end-of-step contact and friction forces times its displacement over the step
   (:meth:`ObstacleBarrier.step_work`, :meth:`ObstacleFriction.step_work`).
 
-Limits: primitive obstacles (sphere, plane, box, capsule, cone; not meshes); vertices and edges against the
-obstacle (a box corner can poke through a triangle's interior); a vertex carried by one moving obstacle into
-another is not resolved (that step's energy is infinite, which the line search refuses).
+* Mesh obstacles: ``phi`` is the unsigned distance to the mesh's surface (:class:`MeshField`; two-sided like
+  the rounds method's meshes, the cloth stays on the side it is on), exact near it, a lower bound elsewhere
+  that the path check's conservative advancement may use; a free vertex that starts inside a closed mesh is
+  an error.
+
+Limits: the cloth's vertices and edges against primitives, its vertices only against a mesh (a box corner, or
+a mesh's edge or corner, can poke through a cloth triangle's interior or between two vertices); a vertex
+carried by one moving obstacle into another is not resolved (that step's energy is infinite, which the line
+search refuses).
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
 
 from ..collision.context import Obstacle, cloth_edges
-from ..collision.shapes import MeshShape
+from ..collision.shapes import MeshShape, Shape
 from ..errors import SceneError
 from ..forces import ConservativeTerm
 from . import barrier
@@ -57,8 +64,12 @@ BARRIER_STIFFNESS = 1.0
 #: Conservative-advancement iterations of the path check (:meth:`ObstacleBarrier.fractions`; stopping short is
 #: safe: the point reached is never too near).
 ADVANCE_ITERATIONS = 20
+#: The same for a mesh (:class:`MeshField`), whose distance costs more: its first is OGC's bound (0.9 of the gap).
+MESH_ADVANCE_ITERATIONS = 4
 #: Passes of the edges' check over the cut moves (:meth:`ObstacleBarrier.fractions`) before the move is scaled.
 EDGE_PASSES = 3
+#: Point-triangle pairs a mesh's distance query evaluates all at once before it searches the triangles' boxes.
+BRUTE_PAIRS = 50_000
 #: The friction's sliding speed when the scene gives none, m/s.
 FRICTION_SPEED = 1e-3
 
@@ -246,7 +257,8 @@ class ObstacleBarrier(ConservativeTerm):
             low = _segment_low(ob.shape, p0, p1)
             near = np.flatnonzero((low < target) & moves)
             if len(near):
-                adv = _advance(ob.shape, p0[near], p1[near] - p0[near], target[near], g0[near] + self.xi)
+                adv = _advance(ob.shape, p0[near], p1[near] - p0[near], target[near], g0[near] + self.xi,
+                               MESH_ADVANCE_ITERATIONS if ob.shape.name == "mesh" else ADVANCE_ITERATIONS)
                 s[self.free[near]] = np.minimum(s[self.free[near]], adv)
         if not len(self.edges) or not any(self.edged):
             return s
@@ -444,13 +456,14 @@ def needs_edges(shape: Any, longest: float, xi: float) -> bool:
     their gaps close to a few hundred nanometres as the cloth slides (the chord is nearer than its ends), and
     backward Euler's end-of-step force on a curved barrier then gains energy (a 32² drape on a 0.3 m sphere
     gained 0.39 J in one step with them, none without)."""
-    if shape.name == "plane":
+    if shape.name in ("plane", "mesh"):       # a mesh: its vertices only (a limit: see the module notes)
         return False
     radius = getattr(shape, "radius", 0.0) if shape.name in ("sphere", "capsule") else 0.0
     return radius <= 0.0 or longest * longest / (8.0 * radius) > 0.5 * xi
 
 
-def _advance(shape: Any, p0: np.ndarray, d: np.ndarray, target: np.ndarray, scale: np.ndarray) -> np.ndarray:
+def _advance(shape: Any, p0: np.ndarray, d: np.ndarray, target: np.ndarray, scale: np.ndarray,
+             iterations: int = ADVANCE_ITERATIONS) -> np.ndarray:
     """Conservative advancement along ``p0 + s d`` (s in [0, 1], local points) until the shape's distance is
     within 1 % of ``scale`` above ``target`` (the distance is 1-Lipschitz): the fraction reached, never past
     where it would come below ``target``."""
@@ -458,13 +471,92 @@ def _advance(shape: Any, p0: np.ndarray, d: np.ndarray, target: np.ndarray, scal
     s = np.zeros(len(p0))
     live = np.arange(len(p0))
     tol = 0.01 * scale
-    for _ in range(ADVANCE_ITERATIONS):
+    for _ in range(iterations):
         g = shape.distance(p0[live] + s[live, None] * d[live]) - target[live]
         s[live] += np.maximum(g, 0.0) / np.maximum(length[live], 1e-300)
         live = live[(g > tol[live]) & (s[live] < 1.0)]
         if not len(live):
             break
     return np.clip(s, 0.0, 1.0)
+
+
+class MeshField(Shape):
+    """The unsigned distance to a mesh obstacle's surface (local frame), the ``phi`` of a mesh for the barrier
+    (two-sided, like the rounds method's meshes: the cloth stays on the side it is on; the unsigned distance is
+    1-Lipschitz and reaches 0 on the surface, so a path that keeps it above the offset crosses no triangle).
+
+    Exact (closest point over the triangles whose boxes meet the cube of the nearest mesh vertex's distance, which
+    holds the nearest triangle) where the point may be within ``exact_within`` of the surface; elsewhere the larger
+    of the lower bounds ``|p - nearest vertex| - longest edge`` (every surface point is within the longest edge
+    of a vertex) and the distance to the mesh's bounding box, which is all the path check's conservative
+    advancement needs there (a lower bound never lets it overshoot). No segment minimum: :meth:`segment_minimum`
+    bounds a segment by its ends less half its length."""
+
+    name = "mesh"
+    exact_distance = True
+
+    def __init__(self, mesh: MeshShape, exact_within: float) -> None:
+        from scipy.spatial import cKDTree
+
+        self.mesh = mesh
+        self.tri = mesh.vertices[mesh.faces]
+        self.tree = cKDTree(mesh.vertices)
+        ev = mesh.vertices[mesh.edges]
+        self.rmax = float(np.sqrt(np.max(np.einsum("ij,ij->i", ev[:, 1] - ev[:, 0], ev[:, 1] - ev[:, 0]))))
+        self.exact_within = float(exact_within)
+        #: the last query and its answer (the same points are asked again within an iteration)
+        self._last: tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+
+    def closest(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Distance (K,) m (a lower bound beyond ``exact_within``), unit normal from the surface to the point
+        (K, 3) and the nearest surface point (K, 3)."""
+        from ..collision.ccd import point_triangle_closest
+
+        last = self._last
+        if last is not None and last[0].shape == p.shape and np.array_equal(last[0], p):
+            return last[1]
+        dv, iv = self.tree.query(p)
+        q = self.mesh.vertices[iv]
+        lo, hi = self.mesh.bounds
+        box = np.maximum(np.maximum(lo - p, p - hi), 0.0)
+        d = np.maximum(dv - self.rmax, np.sqrt(np.einsum("ij,ij->i", box, box)))
+        near = np.flatnonzero(d <= self.exact_within)
+        d = np.maximum(d, 0.0)
+        if len(near):
+            pn, r = p[near], dv[near][:, None] * (1.0 + 1e-9) + 1e-12
+            k, f = len(near), len(self.tri)
+            if k * f <= BRUTE_PAIRS:              # a small mesh: every triangle (no box search to set up)
+                P = np.repeat(pn, f, axis=0)
+                qq, _ = point_triangle_closest(P, np.tile(self.tri[:, 0], (k, 1)), np.tile(self.tri[:, 1], (k, 1)),
+                                               np.tile(self.tri[:, 2], (k, 1)))
+                dd = np.einsum("ij,ij->i", P - qq, P - qq).reshape(k, f)
+                j = np.argmin(dd, axis=1)
+                d[near] = np.sqrt(dd[np.arange(k), j])
+                q[near] = qq.reshape(k, f, 3)[np.arange(k), j]
+            else:
+                b, t = self.mesh.index.overlaps(pn - r, pn + r)
+                qq, _ = point_triangle_closest(pn[b], self.tri[t, 0], self.tri[t, 1], self.tri[t, 2])
+                dd = np.sqrt(np.einsum("ij,ij->i", pn[b] - qq, pn[b] - qq))
+                order = np.lexsort((dd, b))                              # each point's nearest triangle first
+                bs = b[order]
+                first = order[np.r_[True, bs[1:] != bs[:-1]]]
+                rows = near[b[first]]
+                d[rows] = dd[first]
+                q[rows] = qq[first]
+        diff = p - q
+        length = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        n = diff / np.maximum(length, 1e-300)[:, None]
+        self._last = (p.copy(), (d, n, q))
+        return d, n, q
+
+    def distance(self, p: np.ndarray) -> np.ndarray:
+        return self.closest(p)[0]
+
+    def segment_minimum(self, a0: np.ndarray, a1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A lower bound of the distance along each segment (at its midpoint's parameter): the nearer end's less
+        half the segment's length."""
+        half = 0.5 * np.sqrt(np.einsum("ij,ij->i", a1 - a0, a1 - a0))
+        return np.full(len(a0), 0.5), np.minimum(self.distance(a0), self.distance(a1)) - half
 
 
 class ObstacleFriction:
@@ -553,17 +645,12 @@ class ObstacleContact:
     Raises
     ------
     SceneError
-        Naming the obstacle, for a mesh obstacle (not yet supported by this method) and for free cloth vertices
-        that start within half the thickness of an obstacle.
+        Naming the obstacle, for free cloth vertices that start inside a closed mesh or within half the
+        thickness of an obstacle.
     """
 
     def __init__(self, obstacles: list[dict[str, Any]], settings: dict[str, Any], model: Any, dt: float) -> None:
         self.obstacles = [Obstacle.from_spec(s) for s in obstacles]
-        for k, ob in enumerate(self.obstacles):
-            if isinstance(ob.shape, MeshShape):
-                raise SceneError(f"obstacles[{k}].shape: collision.method = 'barrier' supports primitive obstacles "
-                                 f"(sphere, plane, box, capsule, cone), not yet meshes (use collision.method = "
-                                 f"'rounds'), got 'mesh' ({ob.describe()})")
         self.thickness = float(settings["thickness"])
         self.xi = self.dhat = 0.5 * self.thickness
         eps = float(settings.get("friction_speed", FRICTION_SPEED))
@@ -574,8 +661,18 @@ class ObstacleContact:
         self.free = np.ones(model.n, dtype=bool)
         self.free[model.pinned] = False
         self.kappa = BARRIER_STIFFNESS * model.masses / float(dt) ** 2
-        self.barrier = ObstacleBarrier(self.obstacles, self.free, self.kappa, self.xi, self.dhat, 0.0,
+        # a mesh's phi for the barrier: its unsigned distance (MeshField), exact within twice the thickness
+        fields = [dataclasses.replace(ob, shape=MeshField(ob.shape, 2.0 * self.thickness))
+                  if isinstance(ob.shape, MeshShape) else ob for ob in self.obstacles]
+        self.barrier = ObstacleBarrier(fields, self.free, self.kappa, self.xi, self.dhat, 0.0,
                                        cloth_edges(np.asarray(model.faces, dtype=np.int64)), model.rest_positions)
+        for k, ob in enumerate(self.obstacles):
+            if isinstance(ob.shape, MeshShape):
+                inside = self.depths(k, model.rest_positions, 0.0)[self.free] > 0
+                if np.any(inside):
+                    raise SceneError(f"obstacles[{k}]: {int(inside.sum())} free cloth vertices start inside the "
+                                     f"closed mesh {ob.describe()}, where the barrier method cannot start: move "
+                                     f"the cloth or the obstacle apart")
         start = min((float(g.min()) for g, _ in self.barrier.gaps(model.rest_positions) if len(g)), default=np.inf)
         if start <= 0:
             raise SceneError(f"obstacles: free cloth vertices start within half the thickness "
@@ -626,4 +723,6 @@ class ObstacleContact:
     def depths(self, k: int, x: np.ndarray, t: float) -> np.ndarray:
         """Depth (m, > 0 inside) of world points ``x`` inside obstacle ``k``."""
         ob = self.obstacles[k]
+        if isinstance(ob.shape, MeshShape):           # inside a closed mesh (winding number), else 0
+            return ob.shape.depth(ob.motion.to_local(x, t))
         return np.maximum(-ob.shape.distance(ob.motion.to_local(x, t)), 0.0)
