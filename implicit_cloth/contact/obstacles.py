@@ -344,7 +344,7 @@ class ObstacleBarrier(ConservativeTerm):
         A vertex is carried when the least gap of its predicted position held still, along the obstacle's
         motion over ``[t0, t1]``, can be <= 0 (:meth:`_swept`: in the obstacle's frame the held point moves on
         a curve; the shape's exact minimum on its chord between keyframes, less the chord's deviation bound
-        ``alpha max |x - c|`` for a turn of ``alpha``); for an obstacle whose edges are felt, both ends of an
+        second order in the step's turn); for an obstacle whose edges are felt, both ends of an
         edge whose nearer end's bound is within half the edge of the offset (``phi`` is 1-Lipschitz: every
         point of the edge is then cleared), and both ends of any edge the carried start still leaves within
         the offset at the end pose (until none; a carried edge is a rigid copy of a step-start edge, outside).
@@ -394,21 +394,22 @@ class ObstacleBarrier(ConservativeTerm):
     def _swept(self, ob: Obstacle, p: np.ndarray) -> np.ndarray:
         """A lower bound (K,) of ``phi`` at the world points ``p`` held still while the obstacle moves from its
         pose at ``t0`` to ``t1``. Piece by piece between the keyframes inside the step (where the centre moves
-        at a constant velocity and the frame turns at a constant angular velocity ``omega``): the local points
-        ``q(tau) = R^T (p - c)`` differ from their chord by at most ``alpha max(|p - c_a|, |p - c_b|)``
-        (``|R(tau) - R_a| <= alpha = |omega| (b - a)``), and ``phi`` is 1-Lipschitz, so the chord's exact
-        minimum less that bound is a lower bound along the curve."""
+        at a constant velocity ``u`` and the frame turns at a constant angular velocity ``omega``): the local
+        point ``l(tau) = R^T (p - c)`` has ``|l''| <= |omega|^2 |p - c| + 2 |omega| |u|``, so it differs from its
+        chord by at most ``(b - a)^2 / 8`` times that (``|p - c|`` at its larger end: ``p - c`` is linear), and
+        ``phi`` is 1-Lipschitz: the chord's exact minimum less that bound is a lower bound along the curve."""
         times = np.asarray(getattr(ob.motion, "times", ()), dtype=float)
         knots = np.concatenate([[self.t0], times[(times > self.t0) & (times < self.t)], [self.t]])
         low = np.full(len(p), np.inf)
         for a, b in zip(knots[:-1], knots[1:]):
             qa, qb = ob.motion.to_local(p, a), ob.motion.to_local(p, b)
             chord = _segment_low(ob.shape, qa, qb)
-            _, omega = ob.motion.twist(0.5 * (a + b))
-            alpha = float(np.linalg.norm(omega)) * (b - a)
-            if alpha > 0.0:
+            u, omega = ob.motion.twist(0.5 * (a + b))
+            w = float(np.linalg.norm(omega))
+            if w > 0.0:
                 ca, cb = ob.motion.pose(a)[0], ob.motion.pose(b)[0]
-                chord = chord - alpha * np.maximum(np.linalg.norm(p - ca, axis=1), np.linalg.norm(p - cb, axis=1))
+                r = np.maximum(np.linalg.norm(p - ca, axis=1), np.linalg.norm(p - cb, axis=1))
+                chord = chord - (b - a) ** 2 / 8.0 * (w * w * r + 2.0 * w * float(np.linalg.norm(u)))
             low = np.minimum(low, chord)
         return low
 
