@@ -38,8 +38,8 @@ normals and normal forces, for the lagged friction); the step's forces are built
 
 Limits: the cloth's vertices and edges against primitives, its vertices only against a mesh (a box corner, or
 a mesh's edge or corner, can poke through a cloth triangle's interior or between two vertices); a vertex
-carried by one moving obstacle into another is not resolved (that step's energy is infinite, which the line
-search refuses).
+carried by a moving obstacle into another obstacle is not resolved (that step's energy is infinite, which the
+line search refuses).
 """
 
 from __future__ import annotations
@@ -66,6 +66,9 @@ BARRIER_STIFFNESS = 1.0
 ADVANCE_ITERATIONS = 20
 #: The same for a mesh (:class:`MeshField`), whose distance costs more: its first is OGC's bound (0.9 of the gap).
 MESH_ADVANCE_ITERATIONS = 4
+#: The finer splits of the step the carry's swept test (:meth:`ObstacleBarrier.start`) tries, one after the other,
+#: on the vertices it flags (a vertex in contact with a turning sphere is flagged by the coarse chord's dip).
+SWEPT_REFINE = (8, 64)
 #: Passes of the edges' check over the cut moves (:meth:`ObstacleBarrier.fractions`) before the move is scaled.
 EDGE_PASSES = 3
 #: Point-triangle pairs a mesh's distance query evaluates all at once before it searches the triangles' boxes.
@@ -351,7 +354,8 @@ class ObstacleBarrier(ConservativeTerm):
         The vertices not carried start where the cut move takes them from a predicted position that no pose of
         the obstacle during the step reaches: outside its end pose, and every later iterate stays outside
         (:meth:`fractions`), so the step ends outside. Limit: a vertex carried by one obstacle into another
-        that moves too is left there (the step's energy is then infinite, which the line search refuses)."""
+        (pressed between the two) is left there (the step's energy is then infinite, which the line search
+        refuses)."""
         if self.x_start is None or not any(self.moving):
             return dx
         n = len(x)
@@ -363,6 +367,11 @@ class ObstacleBarrier(ConservativeTerm):
                 continue
             low = np.full(n, np.inf)
             low[self.free] = self._swept(ob, x[self.free])
+            for pieces in SWEPT_REFINE:     # the bound again on finer pieces where it flags a vertex
+                again = self.free[low[self.free] <= self.xi]
+                if not len(again):
+                    break
+                low[again] = self._swept(ob, x[again], pieces)
             take = np.zeros(n, dtype=bool)
             take[self.free] = low[self.free] <= self.xi
             if self.edged[k] and len(e):
@@ -391,15 +400,19 @@ class ObstacleBarrier(ConservativeTerm):
         """World points at the step's start moved with the obstacle to its end pose: ``T1 T0^-1 p``."""
         return ob.motion.to_world(ob.motion.to_local(p, self.t0), self.t)
 
-    def _swept(self, ob: Obstacle, p: np.ndarray) -> np.ndarray:
+    def _swept(self, ob: Obstacle, p: np.ndarray, pieces: int = 1) -> np.ndarray:
         """A lower bound (K,) of ``phi`` at the world points ``p`` held still while the obstacle moves from its
         pose at ``t0`` to ``t1``. Piece by piece between the keyframes inside the step (where the centre moves
         at a constant velocity ``u`` and the frame turns at a constant angular velocity ``omega``): the local
         point ``l(tau) = R^T (p - c)`` has ``|l''| <= |omega|^2 |p - c| + 2 |omega| |u|``, so it differs from its
         chord by at most ``(b - a)^2 / 8`` times that (``|p - c|`` at its larger end: ``p - c`` is linear), and
-        ``phi`` is 1-Lipschitz: the chord's exact minimum less that bound is a lower bound along the curve."""
+        ``phi`` is 1-Lipschitz: the chord's exact minimum less that bound is a lower bound along the curve.
+        ``pieces``: each piece split into this many (the bound falls as their square)."""
         times = np.asarray(getattr(ob.motion, "times", ()), dtype=float)
         knots = np.concatenate([[self.t0], times[(times > self.t0) & (times < self.t)], [self.t]])
+        if pieces > 1:
+            knots = np.concatenate([np.linspace(a, b, pieces + 1)[:-1] for a, b in zip(knots[:-1], knots[1:])]
+                                   + [knots[-1:]])
         low = np.full(len(p), np.inf)
         for a, b in zip(knots[:-1], knots[1:]):
             qa, qb = ob.motion.to_local(p, a), ob.motion.to_local(p, b)
