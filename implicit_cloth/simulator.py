@@ -313,26 +313,28 @@ class Simulator:
         integ = self.integrator
         assert isinstance(integ, ImplicitIntegrator)
         t0 = time.perf_counter()
-        contacts = col.detect(state.x) if col is not None else None
-        terms = col.terms(contacts) if col is not None else []
+        contacts = col.detect(state.x, state.t, h) if col is not None else None
+        terms = col.terms(contacts, state.x, state.t, h) if col is not None else []
         if cloth is not None:
             terms.append(cloth.term(state.x))
         t_detect = time.perf_counter() - t0
         share = NEWTON_ENERGY_SHARE * self._energy_growth
-        barriers = [f for f in terms if f.conservative]
-        u0 = sum(f.energy(state.x) for f in barriers)
+
+        def contact_work(x1: np.ndarray, v1: np.ndarray) -> float:
+            # what the barriers gave back (and moving obstacles' work through them and friction)
+            return sum(f.step_work(state.x, x1, v1, h) if hasattr(f, "step_work")
+                       else f.energy(state.x) - f.energy(x1) for f in terms
+                       if f.conservative or hasattr(f, "step_work"))
 
         def done(x1: np.ndarray, v1: np.ndarray, decrement: float) -> bool:
             # Newton's next decrease of the step's potential is below a share of the energy balance's allowance,
-            # and the iterate creates no energy (its balance, the barrier's stored energy booked): it is the step
-            gain, e_step = self.measures.balance(state, State(x1, v1, state.t + h), h,
-                                                 u0 - sum(f.energy(x1) for f in barriers))
+            # and the iterate creates no energy (its balance, the contacts' work booked as the step books it)
+            gain, e_step = self.measures.balance(state, State(x1, v1, state.t + h), h, contact_work(x1, v1))
             return decrement <= share * e_step and gain <= 0.0
         new, info = integ.minimize(state, h, terms, pins, done=done)
         t0 = time.perf_counter()
         if np.all(np.isfinite(new.x)):
-            barriers = [f for f in terms if f.conservative]
-            info.contact_work = sum(f.energy(state.x) - f.energy(new.x) for f in barriers)
+            info.contact_work = contact_work(new.x, new.v)
         if col is not None and contacts is not None:
             depth = max((float(col.depths(k, new.x, new.t)[col.free].max(initial=0.0))
                          for k in range(len(col.obstacles))), default=0.0)

@@ -189,12 +189,23 @@ def test_numpy_and_numba_agree_on_a_drape(monkeypatch):
 
 
 # --------------------------------------------------------------------------- input errors
+def _box_mesh():
+    import tempfile
+
+    import trimesh
+
+    path = tempfile.mkdtemp() + "/box.obj"
+    trimesh.creation.box(extents=[0.2, 0.2, 0.2]).export(path)
+    return path
+
+
 @pytest.mark.parametrize("change, message", [
     (lambda d: d["simulation"].update(integrator="symplectic_euler"),
      "collision.method: 'barrier' minimises the implicit step's potential; it needs an implicit integrator"),
     (lambda d: d["simulation"].update(strain_limit={"max_strain": 0.1}), "does not apply simulation.strain_limit"),
-    (lambda d: d["obstacles"][0].update(velocity=[0.0, 0.0, 1.0]), "obstacles[0]: collision.method = 'barrier' "
-                                                                    "supports primitive obstacles that do not move"),
+    (lambda d: d["obstacles"].__setitem__(0, {"shape": "mesh", "path": _box_mesh(), "translation": [0.0, 0.0, 0.3],
+                                              "friction": 0.0}),
+     "free cloth vertices start inside the closed mesh"),
     (lambda d: d["collision"].update(friction_speed=0.0), "collision.friction_speed: the barrier method's friction"),
     (lambda d: d["collision"].update(method="barier"), "collision.method: must be one of rounds, barrier "
                                                        "(did you mean 'barrier'?), got 'barier'"),

@@ -21,21 +21,40 @@ normals and normal forces, for the lagged friction); the step's forces are built
   made exact along the path for primitives).
 * :class:`ObstacleFriction` (dissipative): IPC's lagged smoothed friction, ``D = sum mu lambda f0(|v_t|)``
   with the normal force ``lambda`` and the tangent plane of the step's start, ``f0`` C1 with
-  ``f0' = f1(s) = 2 s / eps - s^2 / eps^2`` below the sliding speed ``eps``: Coulomb's law above it.
+  ``f0' = f1(s) = 2 s / eps - s^2 / eps^2`` below the sliding speed ``eps``: Coulomb's law above it. ``v_t`` is
+  the cloth's velocity relative to the obstacle's surface (the obstacle's velocity at the contact, lagged).
+* Moving and keyframed obstacles: the potential is against each obstacle's pose at the step's end ``t + h``
+  (:meth:`ObstacleBarrier.at`), every iterate's path checked against that pose. The first iterate starts the
+  vertices (and, for obstacles whose edges are felt, the edges) that the obstacle's motion over the step could
+  reach, held at their predicted positions, carried rigidly with it from their step-start positions
+  (:meth:`ObstacleBarrier.start`): their gap at the end pose is the one they had at the step's start. So every
+  step ends outside every obstacle, and an obstacle never passes through the cloth within a step, however fast.
+  The energy balance books the barrier's stored energy (each end at its own pose) and the obstacle's work on
+  the cloth, the end-of-step contact and friction forces times its displacement over the step
+  (:meth:`ObstacleBarrier.step_work`, :meth:`ObstacleFriction.step_work`).
 
-Limits of this first version: primitive obstacles (sphere, plane, box, capsule, cone) that do not move;
-vertices only (a cloth edge can graze a sharp box edge or cone tip between its vertices); self-contact not yet.
+* Mesh obstacles: ``phi`` is the unsigned distance to the mesh's surface (:class:`MeshField`; two-sided like
+  the rounds method's meshes, the cloth stays on the side it is on), exact near it, a lower bound elsewhere
+  that the path check's conservative advancement may use; a free vertex that starts inside a closed mesh is
+  an error.
+
+Limits: the cloth's vertices and edges against primitives, its vertices only against a mesh (a box corner, or
+a mesh's edge or corner, can poke through a cloth triangle's interior or between two vertices); a vertex
+carried by a moving obstacle into another obstacle is not resolved (that step's energy is infinite, which the
+line search refuses).
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
 
 from ..collision.context import Obstacle, cloth_edges
-from ..collision.shapes import MeshShape
+from ..collision.shapes import MeshShape, Shape
 from ..errors import SceneError
 from ..forces import ConservativeTerm
 from . import barrier
@@ -53,8 +72,15 @@ CURVATURE_SHARE = 0.5
 #: Conservative-advancement iterations of the path check (:meth:`ObstacleBarrier.fractions`; stopping short is
 #: safe: the point reached is never too near).
 ADVANCE_ITERATIONS = 20
+#: The same for a mesh (:class:`MeshField`), whose distance costs more: its first is OGC's bound (0.9 of the gap).
+MESH_ADVANCE_ITERATIONS = 4
+#: The finer splits of the step the carry's swept test (:meth:`ObstacleBarrier.start`) tries, one after the other,
+#: on the vertices it flags (a vertex in contact with a turning sphere is flagged by the coarse chord's dip).
+SWEPT_REFINE = (8, 64)
 #: Passes of the edges' check over the cut moves (:meth:`ObstacleBarrier.fractions`) before the move is scaled.
 EDGE_PASSES = 3
+#: Point-triangle pairs a mesh's distance query evaluates all at once before it searches the triangles' boxes.
+BRUTE_PAIRS = 50_000
 #: The friction's sliding speed when the scene gives none, m/s.
 FRICTION_SPEED = 1e-3
 
@@ -62,13 +88,15 @@ FRICTION_SPEED = 1e-3
 @dataclass(frozen=True)
 class Contacts:
     """The step's obstacle contacts at its start: vertex, obstacle, outward normal (K, 3), normal force
-    ``lambda`` (K,) N and friction coefficient (K,)."""
+    ``lambda`` (K,) N, friction coefficient (K,) and the obstacle's velocity at the contact over the step
+    (K, 3) m/s (None: still)."""
 
     vertex: np.ndarray
     obstacle: np.ndarray
     normal: np.ndarray
     force: np.ndarray
     mu: np.ndarray
+    velocity: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.vertex)
@@ -82,13 +110,15 @@ def _add_diagonal_blocks(system: Any, idx: np.ndarray, blocks: np.ndarray) -> No
 class _Stencil(NamedTuple):
     """Contact primitives of one kind near one obstacle: their cloth vertices ``idx`` (K, m), the weights
     ``w`` (K, m) of the closest point ``p = sum_c w_c x_idx_c``, the outward normal there (K, 3), the gap
-    ``g = phi(p) - xi`` (K,) and the barrier's stiffness (K,)."""
+    ``g = phi(p) - xi`` (K,), the barrier's stiffness (K,) and the obstacle."""
 
     idx: np.ndarray
     w: np.ndarray
     n: np.ndarray
     g: np.ndarray
     kappa: np.ndarray
+    #: the obstacle's index
+    obstacle: int = 0
     #: the signed distance's Hessian (K, 3, 3, world axes) at a vertex stencil, when asked for and given
     hess: np.ndarray | None = None
 
@@ -116,6 +146,11 @@ class ObstacleBarrier(ConservativeTerm):
         self._free_mask = np.asarray(free, dtype=bool)
         self.kappa = kappa[self.free]
         self.xi, self.dhat, self.t = float(xi), float(dhat), float(t)
+        #: the step's start time and positions (:meth:`at`); the potential is at ``t``, the step's end
+        self.t0 = self.t
+        self.x_start: np.ndarray | None = None
+        #: which obstacles move (their start differs from their end pose within a step)
+        self.moving = [bool(ob.motion.moving) for ob in obstacles]
         e = np.zeros((0, 2), dtype=np.int64) if edges is None else np.asarray(edges, dtype=np.int64)
         rest = np.zeros((len(free), 3)) if rest is None else rest
         e = e[self._free_mask[e[:, 0]] | self._free_mask[e[:, 1]]]          # an edge with a free end
@@ -128,19 +163,28 @@ class ObstacleBarrier(ConservativeTerm):
         self.kappa_edge = (kappa[e[:, 0]] + kappa[e[:, 1]]) / 6.0
 
     # ------------------------------------------------------------------ geometry
-    def _local(self, ob: Obstacle, x: np.ndarray) -> np.ndarray:
-        return ob.motion.to_local(x, self.t)
+    def _local(self, ob: Obstacle, x: np.ndarray, t: float | None = None) -> np.ndarray:
+        return ob.motion.to_local(x, self.t if t is None else t)
 
-    def _world_normal(self, ob: Obstacle, n: np.ndarray) -> np.ndarray:
-        return n @ ob.motion.pose(self.t)[1].T
+    def _world_normal(self, ob: Obstacle, n: np.ndarray, t: float | None = None) -> np.ndarray:
+        return n @ ob.motion.pose(self.t if t is None else t)[1].T
 
-    def stencils(self, x: np.ndarray, reach: float | None = None, hessian: bool = False) -> list[_Stencil]:
-        """The vertex and edge primitives within ``reach`` (default the barrier's) of each obstacle at ``x``
-        (``hessian``: with the distance's Hessian at the vertices, where the shape gives it)."""
+    def at(self, x0: np.ndarray, t0: float, t1: float) -> "ObstacleBarrier":
+        """This barrier for the step from ``x0`` at ``t0`` to ``t1``: its potential against the obstacles' poses
+        at ``t1`` (:meth:`start` and :meth:`step_work` read the rest)."""
+        out = copy.copy(self)
+        out.t, out.t0, out.x_start = float(t1), float(t0), np.asarray(x0)
+        return out
+
+    def stencils(self, x: np.ndarray, reach: float | None = None, t: float | None = None,
+                 hessian: bool = False) -> list[_Stencil]:
+        """The vertex and edge primitives within ``reach`` (default the barrier's) of each obstacle at ``x``,
+        the obstacles at their pose at ``t`` (default the potential's, the step's end); ``hessian``: with the
+        distance's Hessian at the vertices, where the shape gives it."""
         reach = self.dhat if reach is None else reach
         out = []
-        for ob, edged in zip(self.obstacles, self.edged):
-            loc = self._local(ob, x)
+        for j, (ob, edged) in enumerate(zip(self.obstacles, self.edged)):
+            loc = self._local(ob, x, t)
             phi, n, c = ob.shape.closest(loc[self.free])
             g = phi - self.xi
             near = g < reach
@@ -148,10 +192,10 @@ class ObstacleBarrier(ConservativeTerm):
             if hessian and np.any(near):
                 H = ob.shape.distance_hessian(loc[self.free][near], n[near], c[near])
                 if H is not None:
-                    R = ob.motion.pose(self.t)[1]
+                    R = ob.motion.pose(self.t if t is None else t)[1]
                     hess = np.einsum("ab,kbc,dc->kad", R, H, R)
             out.append(_Stencil(self.free[near, None], np.ones((int(near.sum()), 1)),
-                                self._world_normal(ob, n[near]), g[near], self.kappa[near], hess))
+                                self._world_normal(ob, n[near], t), g[near], self.kappa[near], j, hess))
             if not len(self.edges) or not edged:
                 continue
             e = self.edges
@@ -171,20 +215,22 @@ class ObstacleBarrier(ConservativeTerm):
             inner = g_e < reach
             k = cand[inner]
             out.append(_Stencil(e[k], np.stack([1.0 - s[inner], s[inner]], axis=1),
-                                self._world_normal(ob, n_e[inner]), g_e[inner], self.kappa_edge[k]))
+                                self._world_normal(ob, n_e[inner], t), g_e[inner], self.kappa_edge[k], j))
         return out
 
-    def gaps(self, x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Per obstacle: each free vertex's gap ``phi - xi`` (m) and the outward normal (world axes)."""
+    def gaps(self, x: np.ndarray, t: float | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per obstacle: each free vertex's gap ``phi - xi`` (m) and the outward normal (world axes), the
+        obstacles at their pose at ``t`` (default the potential's)."""
         out = []
         for ob in self.obstacles:
-            phi, n, _ = ob.shape.closest(self._local(ob, x[self.free]))
-            out.append((phi - self.xi, self._world_normal(ob, n)))
+            phi, n, _ = ob.shape.closest(self._local(ob, x[self.free], t))
+            out.append((phi - self.xi, self._world_normal(ob, n, t)))
         return out
 
     # ------------------------------------------------------------------ the Force interface
-    def energy(self, x: np.ndarray) -> float:
-        return float(sum(np.dot(st.kappa, barrier.value(st.g, self.dhat)) for st in self.stencils(x)))
+    def energy(self, x: np.ndarray, t: float | None = None) -> float:
+        """The stored energy at ``x``, the obstacles at their pose at ``t`` (default the potential's)."""
+        return float(sum(np.dot(st.kappa, barrier.value(st.g, self.dhat)) for st in self.stencils(x, t=t)))
 
     def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
         for st in self.stencils(x):
@@ -246,6 +292,7 @@ class ObstacleBarrier(ConservativeTerm):
         move is scaled down, a prefix of one that passed). 1 for pinned vertices."""
         s = np.ones(len(x))
         p0w, dw = x[self.free], dx[self.free]
+        moves = np.any(dw != 0.0, axis=1)          # a vertex that does not move crosses nothing
         for (g0, _), ob in zip(self.gaps(x), self.obstacles):
             p0 = self._local(ob, p0w)
             p1 = self._local(ob, p0w + dw)
@@ -253,9 +300,10 @@ class ObstacleBarrier(ConservativeTerm):
             # farther (one arriving from afar reaches the barrier's zone in one move)
             target = self.xi + (1.0 - SAFE) * np.minimum(g0, self.dhat)
             low = _segment_low(ob.shape, p0, p1)
-            near = np.flatnonzero(low < target)
+            near = np.flatnonzero((low < target) & moves)
             if len(near):
-                adv = _advance(ob.shape, p0[near], p1[near] - p0[near], target[near], g0[near] + self.xi)
+                adv = _advance(ob.shape, p0[near], p1[near] - p0[near], target[near], g0[near] + self.xi,
+                               MESH_ADVANCE_ITERATIONS if ob.shape.name == "mesh" else ADVANCE_ITERATIONS)
                 s[self.free[near]] = np.minimum(s[self.free[near]], adv)
         if not len(self.edges) or not any(self.edged):
             return s
@@ -363,6 +411,120 @@ class ObstacleBarrier(ConservativeTerm):
             return None
         return np.concatenate(bad_e), np.concatenate(bad_f)
 
+    # ------------------------------------------------------------------ moving obstacles
+    def start(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+        """The first iterate's move ``dx`` from ``x`` (the scheme's predicted positions, ``dx`` already cut by
+        :meth:`filter_move`) with every vertex a moving obstacle could pass through during the step carried
+        with it instead: such a vertex starts at its step-start position moved rigidly from the obstacle's
+        start pose to its end pose (``T1 T0^-1 x_start``), so its gap to that obstacle at the end pose is the
+        gap it had at the step's start, > 0 (the previous step ended outside every obstacle's pose at this
+        step's start). ``dx`` itself when nothing is carried.
+
+        A vertex is carried when the least gap of its predicted position held still, along the obstacle's
+        motion over ``[t0, t1]``, can be <= 0 (:meth:`_swept`: in the obstacle's frame the held point moves on
+        a curve; the shape's exact minimum on its chord between keyframes, less the chord's deviation bound
+        second order in the step's turn); for an obstacle whose edges are felt, both ends of an
+        edge whose nearer end's bound is within half the edge of the offset (``phi`` is 1-Lipschitz: every
+        point of the edge is then cleared), and both ends of any edge the carried start still leaves within
+        the offset at the end pose (until none; a carried edge is a rigid copy of a step-start edge, outside).
+        The vertices not carried start where the cut move takes them from a predicted position that no pose of
+        the obstacle during the step reaches: outside its end pose, and every later iterate stays outside
+        (:meth:`fractions`), so the step ends outside. Limit: a vertex carried by one obstacle into another
+        (pressed between the two) is left there (the step's energy is then infinite, which the line search
+        refuses)."""
+        if self.x_start is None or not any(self.moving):
+            return dx
+        n = len(x)
+        y = x + dx
+        carried = np.zeros(n, dtype=bool)
+        e = self.edges
+        for k, ob in enumerate(self.obstacles):
+            if not self.moving[k]:
+                continue
+            low = np.full(n, np.inf)
+            low[self.free] = self._swept(ob, x[self.free])
+            for pieces in SWEPT_REFINE:     # the bound again on finer pieces where it flags a vertex
+                again = self.free[low[self.free] <= self.xi]
+                if not len(again):
+                    break
+                low[again] = self._swept(ob, x[again], pieces)
+            take = np.zeros(n, dtype=bool)
+            take[self.free] = low[self.free] <= self.xi
+            if self.edged[k] and len(e):
+                half = 0.5 * np.sqrt(np.einsum("ij,ij->i", x[e[:, 1]] - x[e[:, 0]], x[e[:, 1]] - x[e[:, 0]]))
+                near = np.minimum(low[e[:, 0]], low[e[:, 1]]) - half <= self.xi
+                take[e[near].ravel()] = True
+            take &= self._free_mask & ~carried
+            if np.any(take):
+                y[take] = self._carry(ob, self.x_start[take])
+                carried |= take
+            if not (self.edged[k] and len(e)):
+                continue
+            for _ in range(len(e)):                      # edges the carried start leaves within the offset
+                a0, a1 = self._local(ob, y[e[:, 0]]), self._local(ob, y[e[:, 1]])
+                _, low_e = ob.shape.segment_minimum(a0, a1)
+                grow = np.zeros(n, dtype=bool)
+                grow[e[low_e <= self.xi].ravel()] = True
+                grow &= self._free_mask & ~carried
+                if not np.any(grow):
+                    break
+                y[grow] = self._carry(ob, self.x_start[grow])
+                carried |= grow
+        return y - x if np.any(carried) else dx
+
+    def _carry(self, ob: Obstacle, p: np.ndarray) -> np.ndarray:
+        """World points at the step's start moved with the obstacle to its end pose: ``T1 T0^-1 p``."""
+        return ob.motion.to_world(ob.motion.to_local(p, self.t0), self.t)
+
+    def _swept(self, ob: Obstacle, p: np.ndarray, pieces: int = 1) -> np.ndarray:
+        """A lower bound (K,) of ``phi`` at the world points ``p`` held still while the obstacle moves from its
+        pose at ``t0`` to ``t1``. Piece by piece between the keyframes inside the step (where the centre moves
+        at a constant velocity ``u`` and the frame turns at a constant angular velocity ``omega``): the local
+        point ``l(tau) = R^T (p - c)`` has ``|l''| <= |omega|^2 |p - c| + 2 |omega| |u|``, so it differs from its
+        chord by at most ``(b - a)^2 / 8`` times that (``|p - c|`` at its larger end: ``p - c`` is linear), and
+        ``phi`` is 1-Lipschitz: the chord's exact minimum less that bound is a lower bound along the curve.
+        ``pieces``: each piece split into this many (the bound falls as their square)."""
+        times = np.asarray(getattr(ob.motion, "times", ()), dtype=float)
+        knots = np.concatenate([[self.t0], times[(times > self.t0) & (times < self.t)], [self.t]])
+        if pieces > 1:
+            knots = np.concatenate([np.linspace(a, b, pieces + 1)[:-1] for a, b in zip(knots[:-1], knots[1:])]
+                                   + [knots[-1:]])
+        low = np.full(len(p), np.inf)
+        for a, b in zip(knots[:-1], knots[1:]):
+            qa, qb = ob.motion.to_local(p, a), ob.motion.to_local(p, b)
+            chord = _segment_low(ob.shape, qa, qb)
+            u, omega = ob.motion.twist(0.5 * (a + b))
+            w = float(np.linalg.norm(omega))
+            if w > 0.0:
+                ca, cb = ob.motion.pose(a)[0], ob.motion.pose(b)[0]
+                r = np.maximum(np.linalg.norm(p - ca, axis=1), np.linalg.norm(p - cb, axis=1))
+                chord = chord - (b - a) ** 2 / 8.0 * (w * w * r + 2.0 * w * float(np.linalg.norm(u)))
+            low = np.minimum(low, chord)
+        return low
+
+    def displacement(self, ob: Obstacle, p: np.ndarray) -> np.ndarray:
+        """The step's displacement (K, 3) of the obstacle's material points at world ``p`` at its end:
+        ``p - T0 T1^-1 p`` (0 for an obstacle that does not move)."""
+        return p - ob.motion.to_world(ob.motion.to_local(p, self.t), self.t0)
+
+    def step_work(self, x0: np.ndarray, x1: np.ndarray, v1: np.ndarray, h: float) -> float:
+        """The energy the step's balance books for the barrier, J: what it gave back,
+        ``U(x0; T0) - U(x1; T1)`` (each against the obstacles' pose at its time), plus the work the moving
+        obstacles did on the cloth through it: ``U`` is a function of the cloth's position relative to the
+        obstacle, so moving the obstacle by ``delta`` at a contact changes it by ``F . delta`` (``F =
+        -dU/dx`` the contact force on the cloth), here the end-of-step force times the step's displacement of
+        the obstacle's material point at the contact (backward Euler's quadrature)."""
+        work = self.energy(x0, self.t0) - self.energy(x1)
+        if not any(self.moving):
+            return work
+        for st in self.stencils(x1):
+            if not len(st.g) or not self.moving[st.obstacle]:
+                continue
+            p = np.einsum("kc,kcj->kj", st.w, x1[st.idx])
+            f = -(st.kappa * barrier.first(st.g, self.dhat))[:, None] * st.n      # on the cloth, N
+            work += float(np.einsum("ij,ij->", f, self.displacement(self.obstacles[st.obstacle], p)))
+        return work
+
     def active(self, x: np.ndarray) -> int:
         """Vertex and edge primitives within the barrier's reach at ``x``."""
         return int(sum(len(st.g) for st in self.stencils(x)))
@@ -384,13 +546,14 @@ def needs_edges(shape: Any, longest: float, xi: float) -> bool:
     their gaps close to a few hundred nanometres as the cloth slides (the chord is nearer than its ends), and
     backward Euler's end-of-step force on a curved barrier then gains energy (a 32² drape on a 0.3 m sphere
     gained 0.39 J in one step with them, none without)."""
-    if shape.name == "plane":
+    if shape.name in ("plane", "mesh"):       # a mesh: its vertices only (a limit: see the module notes)
         return False
     radius = getattr(shape, "radius", 0.0) if shape.name in ("sphere", "capsule") else 0.0
     return radius <= 0.0 or longest * longest / (8.0 * radius) > 0.5 * xi
 
 
-def _advance(shape: Any, p0: np.ndarray, d: np.ndarray, target: np.ndarray, scale: np.ndarray) -> np.ndarray:
+def _advance(shape: Any, p0: np.ndarray, d: np.ndarray, target: np.ndarray, scale: np.ndarray,
+             iterations: int = ADVANCE_ITERATIONS) -> np.ndarray:
     """Conservative advancement along ``p0 + s d`` (s in [0, 1], local points) until the shape's distance is
     within 1 % of ``scale`` above ``target`` (the distance is 1-Lipschitz): the fraction reached, never past
     where it would come below ``target``."""
@@ -398,7 +561,7 @@ def _advance(shape: Any, p0: np.ndarray, d: np.ndarray, target: np.ndarray, scal
     s = np.zeros(len(p0))
     live = np.arange(len(p0))
     tol = 0.01 * scale
-    for _ in range(ADVANCE_ITERATIONS):
+    for _ in range(iterations):
         g = shape.distance(p0[live] + s[live, None] * d[live]) - target[live]
         s[live] += np.maximum(g, 0.0) / np.maximum(length[live], 1e-300)
         live = live[(g > tol[live]) & (s[live] < 1.0)]
@@ -407,9 +570,90 @@ def _advance(shape: Any, p0: np.ndarray, d: np.ndarray, target: np.ndarray, scal
     return np.clip(s, 0.0, 1.0)
 
 
+class MeshField(Shape):
+    """The unsigned distance to a mesh obstacle's surface (local frame), the ``phi`` of a mesh for the barrier
+    (two-sided, like the rounds method's meshes: the cloth stays on the side it is on; the unsigned distance is
+    1-Lipschitz and reaches 0 on the surface, so a path that keeps it above the offset crosses no triangle).
+
+    Exact (closest point over the triangles whose boxes meet the cube of the nearest mesh vertex's distance, which
+    holds the nearest triangle) where the point may be within ``exact_within`` of the surface; elsewhere the larger
+    of the lower bounds ``|p - nearest vertex| - longest edge`` (every surface point is within the longest edge
+    of a vertex) and the distance to the mesh's bounding box, which is all the path check's conservative
+    advancement needs there (a lower bound never lets it overshoot). No segment minimum: :meth:`segment_minimum`
+    bounds a segment by its ends less half its length."""
+
+    name = "mesh"
+    exact_distance = True
+
+    def __init__(self, mesh: MeshShape, exact_within: float) -> None:
+        from scipy.spatial import cKDTree
+
+        self.mesh = mesh
+        self.tri = mesh.vertices[mesh.faces]
+        self.tree = cKDTree(mesh.vertices)
+        ev = mesh.vertices[mesh.edges]
+        self.rmax = float(np.sqrt(np.max(np.einsum("ij,ij->i", ev[:, 1] - ev[:, 0], ev[:, 1] - ev[:, 0]))))
+        self.exact_within = float(exact_within)
+        #: the last query and its answer (the same points are asked again within an iteration)
+        self._last: tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+
+    def closest(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Distance (K,) m (a lower bound beyond ``exact_within``), unit normal from the surface to the point
+        (K, 3) and the nearest surface point (K, 3)."""
+        from ..collision.ccd import point_triangle_closest
+
+        last = self._last
+        if last is not None and last[0].shape == p.shape and np.array_equal(last[0], p):
+            return last[1]
+        dv, iv = self.tree.query(p)
+        q = self.mesh.vertices[iv]
+        lo, hi = self.mesh.bounds
+        box = np.maximum(np.maximum(lo - p, p - hi), 0.0)
+        d = np.maximum(dv - self.rmax, np.sqrt(np.einsum("ij,ij->i", box, box)))
+        near = np.flatnonzero(d <= self.exact_within)
+        d = np.maximum(d, 0.0)
+        if len(near):
+            pn, r = p[near], dv[near][:, None] * (1.0 + 1e-9) + 1e-12
+            k, f = len(near), len(self.tri)
+            if k * f <= BRUTE_PAIRS:              # a small mesh: every triangle (no box search to set up)
+                P = np.repeat(pn, f, axis=0)
+                qq, _ = point_triangle_closest(P, np.tile(self.tri[:, 0], (k, 1)), np.tile(self.tri[:, 1], (k, 1)),
+                                               np.tile(self.tri[:, 2], (k, 1)))
+                dd = np.einsum("ij,ij->i", P - qq, P - qq).reshape(k, f)
+                j = np.argmin(dd, axis=1)
+                d[near] = np.sqrt(dd[np.arange(k), j])
+                q[near] = qq.reshape(k, f, 3)[np.arange(k), j]
+            else:
+                b, t = self.mesh.index.overlaps(pn - r, pn + r)
+                qq, _ = point_triangle_closest(pn[b], self.tri[t, 0], self.tri[t, 1], self.tri[t, 2])
+                dd = np.sqrt(np.einsum("ij,ij->i", pn[b] - qq, pn[b] - qq))
+                order = np.lexsort((dd, b))                              # each point's nearest triangle first
+                bs = b[order]
+                first = order[np.r_[True, bs[1:] != bs[:-1]]]
+                rows = near[b[first]]
+                d[rows] = dd[first]
+                q[rows] = qq[first]
+        diff = p - q
+        length = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+        n = diff / np.maximum(length, 1e-300)[:, None]
+        self._last = (p.copy(), (d, n, q))
+        return d, n, q
+
+    def distance(self, p: np.ndarray) -> np.ndarray:
+        return self.closest(p)[0]
+
+    def segment_minimum(self, a0: np.ndarray, a1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A lower bound of the distance along each segment (at its midpoint's parameter): the nearer end's less
+        half the segment's length."""
+        half = 0.5 * np.sqrt(np.einsum("ij,ij->i", a1 - a0, a1 - a0))
+        return np.full(len(a0), 0.5), np.minimum(self.distance(a0), self.distance(a1)) - half
+
+
 class ObstacleFriction:
     """IPC's lagged smoothed friction on the contacts of the step's start (a dissipative
-    :class:`~implicit_cloth.forces.Force`); the obstacles do not move, so the sliding velocity is ``v_t``."""
+    :class:`~implicit_cloth.forces.Force`): the sliding velocity is the cloth's relative to the obstacle's surface,
+    ``v_t = P (v - u)`` with the obstacle's velocity ``u`` at the contact over the step (lagged like the normal:
+    :attr:`Contacts.velocity`; 0 for a still obstacle)."""
 
     name = "friction"
     conservative = False
@@ -422,11 +666,22 @@ class ObstacleFriction:
         self.n = contacts.normal[keep]
         self.scale = (contacts.mu * contacts.force)[keep]      # mu lambda, N
         self.eps = float(eps)
+        self.u = None if contacts.velocity is None else contacts.velocity[keep]
 
     def _tangent(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        u = v[self.idx]
+        u = v[self.idx] if self.u is None else v[self.idx] - self.u
         vt = u - np.einsum("ij,ij->i", u, self.n)[:, None] * self.n
         return vt, np.sqrt(np.einsum("ij,ij->i", vt, vt))
+
+    def step_work(self, x0: np.ndarray, x1: np.ndarray, v1: np.ndarray, h: float) -> float:
+        """The moving obstacles' work on the cloth through friction in the step, J: the end-of-step friction force
+        times the obstacle's displacement ``h u`` at each contact (the rest of the friction's power, against the
+        relative velocity, is dissipated)."""
+        if self.u is None or not len(self.idx):
+            return 0.0
+        vt, s = self._tangent(v1)
+        fc = -(self.scale * self._over_s(s))[:, None] * vt                  # each contact's force on the cloth
+        return h * float(np.einsum("ij,ij->", fc, self.u))
 
     def energy(self, x: np.ndarray) -> float:
         return 0.0
@@ -480,18 +735,12 @@ class ObstacleContact:
     Raises
     ------
     SceneError
-        Naming the obstacle, for a mesh or moving obstacle (not yet supported by this method) and for free
-        cloth vertices that start within half the thickness of an obstacle.
+        Naming the obstacle, for free cloth vertices that start inside a closed mesh or within half the
+        thickness of an obstacle.
     """
 
     def __init__(self, obstacles: list[dict[str, Any]], settings: dict[str, Any], model: Any, dt: float) -> None:
         self.obstacles = [Obstacle.from_spec(s) for s in obstacles]
-        for k, ob in enumerate(self.obstacles):
-            if isinstance(ob.shape, MeshShape) or ob.motion.moving:
-                what = "a mesh" if isinstance(ob.shape, MeshShape) else "a moving obstacle"
-                raise SceneError(f"obstacles[{k}]: collision.method = 'barrier' supports primitive obstacles that "
-                                 f"do not move; this is {what} (use collision.method = 'rounds'), got "
-                                 f"{ob.describe()}")
         self.thickness = float(settings["thickness"])
         self.xi = self.dhat = 0.5 * self.thickness
         eps = float(settings.get("friction_speed", FRICTION_SPEED))
@@ -502,8 +751,18 @@ class ObstacleContact:
         self.free = np.ones(model.n, dtype=bool)
         self.free[model.pinned] = False
         self.kappa = BARRIER_STIFFNESS * model.masses / float(dt) ** 2
-        self.barrier = ObstacleBarrier(self.obstacles, self.free, self.kappa, self.xi, self.dhat, 0.0,
+        # a mesh's phi for the barrier: its unsigned distance (MeshField), exact within twice the thickness
+        fields = [dataclasses.replace(ob, shape=MeshField(ob.shape, 2.0 * self.thickness))
+                  if isinstance(ob.shape, MeshShape) else ob for ob in self.obstacles]
+        self.barrier = ObstacleBarrier(fields, self.free, self.kappa, self.xi, self.dhat, 0.0,
                                        cloth_edges(np.asarray(model.faces, dtype=np.int64)), model.rest_positions)
+        for k, ob in enumerate(self.obstacles):
+            if isinstance(ob.shape, MeshShape):
+                inside = self.depths(k, model.rest_positions, 0.0)[self.free] > 0
+                if np.any(inside):
+                    raise SceneError(f"obstacles[{k}]: {int(inside.sum())} free cloth vertices start inside the "
+                                     f"closed mesh {ob.describe()}, where the barrier method cannot start: move "
+                                     f"the cloth or the obstacle apart")
         start = min((float(g.min()) for g, _ in self.barrier.gaps(model.rest_positions) if len(g)), default=np.inf)
         if start <= 0:
             raise SceneError(f"obstacles: free cloth vertices start within half the thickness "
@@ -518,23 +777,35 @@ class ObstacleContact:
     def reset(self) -> None:
         """Nothing is carried from step to step."""
 
-    def detect(self, x: np.ndarray) -> Contacts:
-        """The contacts at ``x`` (the step's start): vertices within the barrier's reach, their normals and
-        normal forces ``kappa |b'(gap)|``."""
-        vs, obs, ns, lams, mus = [], [], [], [], []
-        for k, (g, n) in enumerate(self.barrier.gaps(x)):
+    def detect(self, x: np.ndarray, t: float = 0.0, h: float = 0.0) -> Contacts:
+        """The contacts at ``x`` (the step's start, the obstacles at their pose at ``t``): vertices within the
+        barrier's reach, their normals and normal forces ``kappa |b'(gap)|``, and the obstacle's velocity at
+        each over the step of ``h`` (its displacement there over ``h``; None when no obstacle moves)."""
+        vs, obs, ns, lams, mus, us = [], [], [], [], [], []
+        bar = self.barrier.at(x, t, t + h)
+        for k, (g, n) in enumerate(bar.gaps(x, t)):
             on = g < self.dhat
-            vs.append(self.barrier.free[on])
+            idx = bar.free[on]
+            vs.append(idx)
             obs.append(np.full(int(on.sum()), k))
             ns.append(n[on])
-            lams.append(-self.barrier.kappa[on] * barrier.first(g[on], self.dhat))
+            lams.append(-bar.kappa[on] * barrier.first(g[on], self.dhat))
             mus.append(np.full(int(on.sum()), self.obstacles[k].friction))
+            if bar.moving[k] and h > 0:     # the material point at x at t, over the step: (T1 T0^-1 x - x) / h
+                us.append((bar._carry(self.obstacles[k], x[idx]) - x[idx]) / h)
+            else:
+                us.append(np.zeros((len(idx), 3)))
+        moving = any(bar.moving) and h > 0
         return Contacts(np.concatenate(vs), np.concatenate(obs), np.concatenate(ns).reshape(-1, 3),
-                        np.concatenate(lams), np.concatenate(mus))
+                        np.concatenate(lams), np.concatenate(mus),
+                        np.concatenate(us).reshape(-1, 3) if moving else None)
 
-    def terms(self, contacts: Contacts) -> list[Any]:
-        """The step's contact forces: the barrier, and the friction of ``contacts`` where it has any."""
-        out: list[Any] = [self.barrier]
+    def terms(self, contacts: Contacts, x0: np.ndarray | None = None, t: float = 0.0,
+              h: float = 0.0) -> list[Any]:
+        """The step's contact forces: the barrier against the obstacles' poses at the step's end ``t + h`` (from
+        ``x0`` at ``t``: :meth:`ObstacleBarrier.at`), and the friction of ``contacts`` where it has any."""
+        bar = self.barrier if x0 is None else self.barrier.at(x0, t, t + h)
+        out: list[Any] = [bar]
         if len(contacts) and np.any(contacts.mu > 0):
             out.append(ObstacleFriction(contacts, self.eps))
         return out
@@ -542,4 +813,6 @@ class ObstacleContact:
     def depths(self, k: int, x: np.ndarray, t: float) -> np.ndarray:
         """Depth (m, > 0 inside) of world points ``x`` inside obstacle ``k``."""
         ob = self.obstacles[k]
+        if isinstance(ob.shape, MeshShape):           # inside a closed mesh (winding number), else 0
+            return ob.shape.depth(ob.motion.to_local(x, t))
         return np.maximum(-ob.shape.distance(ob.motion.to_local(x, t)), 0.0)

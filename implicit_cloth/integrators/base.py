@@ -612,7 +612,7 @@ class ImplicitIntegrator(Integrator):
             v[c.pinned] = c.pin_velocity
         # the first iterate: the start velocity, each vertex as far as the contacts allow from x_pred (v = 0)
         x0 = scheme.x_pred
-        v = bounds.cut(x0, v)
+        v = bounds.start(x0, bounds.cut(x0, v))
         floor = MINIMIZE_FLOOR * np.sqrt(float(np.sum(M)))
         sysm = self.model.system
         for _ in range(iterations):
@@ -860,6 +860,15 @@ class _PathBounds:
             out_m.append(m)
             left = np.setdiff1d(left, i)
         return np.concatenate(out_i), np.concatenate(out_n), np.concatenate(out_m)
+
+    def start(self, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """The first iterate ``v`` (already cut from ``x``, the predicted positions) with the moves the terms that
+        have ``start(x, dx)`` set instead (a moving obstacle carries the vertices it would pass through)."""
+        move = start = self.c_v * v
+        for f in self.terms:
+            if hasattr(f, "start"):
+                move = f.start(x, move)
+        return v if move is start else move / self.c_v
 
     def allowed(self, x: np.ndarray, d: np.ndarray) -> bool:
         move = self.c_v * d
