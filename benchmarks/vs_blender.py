@@ -1,31 +1,63 @@
-"""implicit_cloth against Blender 3.4's cloth, side by side in one run: ms per 1/60 s frame and the ratio per size.
+"""implicit_cloth against Blender 3.4's cloth, side by side in one run: ms per 1/60 s frame, the ratio per size,
+and the quality of both judged from their positions by one script.
 
-The scene (SI units; the shared peer scene): a 1 m x 1 m cloth of n x n vertices, 0.1 kg, springs
-k = 1000 (structural) / 333.3 (shear) / 10 (bend) N/m, damping 0.01 N*s/m, no air drag, gravity, dt = 1/60 s,
-2 s simulated (120 frames). "hanging": the two top corners pinned. "drape": dropped from z = 0.5 m onto a
-sphere r = 0.3 m (friction 0.3, contact distance 0.01 m in all). Blender's cloth is set up from the same SI
-scene by ``_blender_cloth.py`` (run inside Blender; its docstring gives the unit mapping); its solver is
-one thread with CG capped at 100 iterations and a 1e-2 residual (its error is not bounded). Ours: backward
-Euler with the default solver (multigrid PCG, tolerance 1e-3 on the error of dv) and the default step control
-(adaptive: a step that breaks the energy balance or the strain bound is redone), or ``--fixed`` (one
-linearised step per frame, like Blender). Both run in their own processes, alternating (ours, Blender, ours,
-...), ``--pairs`` pairs per size and scene; the medians are compared. Timed: the frames after the first
-(start-up, the first frame and, for ours, the first load of the compiled kernels, are not). Each run also
-reports the lowest point, the rms speed of the last frame (m/s; "at rest" below 0.01) and, for ours, the CG
-iterations and solves per frame.
+The scenes (SI units), dt = 1/60 s:
+
+* "hanging" and "drape" (the shared peer scene): a 1 m x 1 m cloth of n x n vertices, 0.1 kg, springs
+  k = 1000 (structural) / 333.3 (shear) / 10 (bend) N/m, damping 0.01 N*s/m, no air drag, gravity, 2 s
+  simulated (120 frames). "hanging": the two top corners pinned. "drape": dropped from z = 0.5 m onto a
+  sphere r = 0.3 m (friction 0.3, thickness 5 mm).
+* "crumple" (``self_collision.crumple``, the same scene table): a 1 m cotton sheet (0.15 kg, k = 5000 / 500 /
+  20 N/m) hanging in the xz plane 0.62 m up, dropped edge-first onto the floor and a rod (radius 3 cm along y
+  at x = 0.1 m, 4 cm up), friction 0.3 with the obstacles and between layers, thickness 5 mm, self-collision
+  on, 1.5 s (90 frames). ``--method rounds|barrier`` chooses ours' ``[collision] method`` (default the
+  scene's: rounds).
+
+Blender's cloth is set up from the same SI scenes by ``_blender_cloth.py`` (run inside Blender; its docstring
+gives the unit mapping, the contact distances and the friction: Blender's obstacle friction is the collision
+object's ``cloth_friction`` times 0.01, so 30 for mu = 0.3, its self-friction likewise); its solver is one
+thread with CG capped at 100 iterations and a 1e-2 residual (its error is not bounded). Blender's bending
+model is ANGULAR (``--blender-bending``): with LINEAR its structural springs take no compression
+(``SIM_mass_spring_force_spring_linear`` skips a compressed spring unless a flag no Python property sets is
+on): at the end of the 32² drape (2 s) 24.1 % of its structural springs are more than 20 % compressed (the
+shortest at 0.38 of its length), none with ANGULAR (compression stiffness = tension stiffness; 0.7 % at the
+worst frame) and none of ours (``benchmarks/studies/blender_compression.py``). ANGULAR bending is a
+dihedral-angle spring, ours are linear springs over two edges: the two are matched at a 0.5 rad hinge.
+
+Ours: backward Euler with the default solver (multigrid PCG, tolerance 1e-3 on the error of dv) and the
+default step control (adaptive: a step that breaks the energy balance or the strain bound is redone), or
+``--fixed`` (one linearised step per frame, like Blender). Both run in their own processes, alternating
+(ours, Blender at each ``--blender-quality``, ours, ...), ``--pairs`` pairs per size and scene; the medians
+are compared. Timed: the frames after the first (start-up, the first frame and, for ours, the first load of
+the compiled kernels, are not; nor is the copying of positions). Blender's quality sweep
+(``--blender-quality 1 2 4 ...``) is over its ``quality``, the steps per frame (``collision_quality``, the
+collision passes per step, stays at its default 2 unless ``--blender-collision-quality`` is given; Blender
+3.4 has no separate self-collision quality).
+
+The judge (``judge``, the same code for both programs): every run writes every frame's positions, and from
+them: self-crossings (``self_collision.count_crossings``: edges through triangles sharing no vertex, at every
+``--judge-every``-th frame and the last), the most at any judged frame and at the end; penetration, the
+deepest point inside an obstacle's surface (the sphere; the floor and the rod), m, at any frame and at the
+end (n/a for the hanging cloth); the rms speed of the last frame (m/s; "at rest" below 0.01). Per size the
+table compares ours with Blender's cheapest quality (ms per frame) with no penetration, no point deeper than
+``PENETRATION_TOL`` = 1 mm at any frame (if every quality run penetrates: the least penetrating, marked), and
+gives both programs' crossings; a second table lists every run's quality. Ours also reports its CG iterations
+and solves per frame.
 
 Usage::
 
-    python benchmarks/vs_blender.py                                   # hanging 32..256, drape 32..128
+    python benchmarks/vs_blender.py                                   # hanging 32..256, drape and crumple 32..128
+    python benchmarks/vs_blender.py --scenes crumple --blender-quality 1 2 4 8 --threads 2
+    python benchmarks/vs_blender.py --scenes crumple --method barrier --sizes 32 64 --pairs 1
     python benchmarks/vs_blender.py --scenes drape --sizes 32 64 --pairs 1
     python benchmarks/vs_blender.py --fixed --threads 2
     python benchmarks/vs_blender.py --scenes hanging --fixed --preconditioner multigrid_smoothed
-    python benchmarks/vs_blender.py --quick                           # both scenes at 8², one pair
+    python benchmarks/vs_blender.py --quick                           # every scene at 8², one pair
 
-Needs Blender (``apt-get install blender python3-numpy``: Debian's 3.4 and the numpy its Python uses);
-without it the script says so on stderr and exits 1, except with ``--quick``, which then runs our side alone
-(the Blender columns "-"). Writes ``OUT/NAME.{json,md}`` (``--name``, default vs_blender; ``--out``, default
-out/bench/vs_blender). Never asserts a time.
+Needs Blender (``apt-get install blender python3-numpy``: Debian's 3.4 and the numpy its Python uses; it is
+run with the system's Python first on PATH); without it the script says so on stderr and exits 1, except
+with ``--quick``, which then runs our side alone (the Blender columns "-"). Writes ``OUT/NAME.{json,md}``
+(``--name``, default vs_blender; ``--out``, default out/bench/vs_blender). Never asserts a time.
 """
 
 from __future__ import annotations
