@@ -1,5 +1,6 @@
-"""implicit_cloth against Blender 3.4's cloth, side by side in one run: ms per 1/60 s frame, the ratio per size,
-and the quality of both judged from their positions by one script.
+"""implicit_cloth against Blender 3.4's cloth, side by side: ms per 1/60 s frame, the ratio, and one judge of both.
+
+One run times both programs per size and judges the quality of both from their positions with one script.
 
 The scenes (SI units), dt = 1/60 s:
 
