@@ -19,7 +19,9 @@ Contact distance: ours keeps ``thickness`` = 5 mm; Blender's obstacle contact is
 ``distance_min`` plus the obstacle's ``thickness_outer``, each set to the thickness (10 mm in all, the drape's
 mapping since the peer scene), and its self-contact at twice ``self_distance_min``, set to half the thickness
 (5 mm between layers). Friction: Blender's obstacle friction is the collision object's ``cloth_friction``
-times 0.01 and its self-friction ``self_friction`` times 0.01 (``collision.c``), so mu = 0.3 is 30.
+times 0.01 and its self-friction ``self_friction`` times 0.01 (``collision.c``), so mu = 0.3 is 30; the
+cloth's own collision ``friction`` has no effect in 3.4 (a 16² drape ends bit-identical with 0 and 80, and
+changes with the sphere's ``cloth_friction``).
 
 Blender's units (checked against the 3.4 source, ``cloth_calc_force``): gravity is scaled by 0.001, a
 spring's k is its stiffness over the average structural spring length, damping and air drag are not
