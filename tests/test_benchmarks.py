@@ -183,6 +183,12 @@ def test_vs_blender_without_blender_and_its_worker_reports(tmp_path):
     (row,) = json.loads((tmp_path / "vs_blender.json").read_text())["rows"]
     assert row["n"] == 8 and row["ours_ms"] > 0 and row["blender_ms"] is None and row["ratio"] is None
     assert "| hanging | 8² |" in out and "| - | - |" in out
+    # --merge combines runs' rows (a scene and size given twice: one row)
+    merged = subprocess.run([sys.executable, script, "--merge", str(tmp_path / "vs_blender.json"),
+                             str(tmp_path / "vs_blender.json"), "--out", str(tmp_path / "m")],
+                            check=True, capture_output=True, text=True).stdout
+    assert len(json.loads((tmp_path / "m" / "vs_blender.json").read_text())["rows"]) == 1
+    assert "| hanging | 8² |" in merged
     out = subprocess.run([sys.executable, script, "--worker", "--scenes", "drape", "--sizes", "8", "--fixed"],
                          check=True, capture_output=True, text=True).stdout
     res = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
