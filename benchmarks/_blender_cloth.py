@@ -159,7 +159,7 @@ if a.scene == "drape":
     bpy.ops.mesh.primitive_uv_sphere_add(segments=64, ring_count=32, radius=SPHERE_R, location=(0.0, 0.0, 0.0))
     collider(bpy.context.active_object)
 elif a.scene == "crumple":
-    bpy.ops.mesh.primitive_grid_add(x_subdivisions=61, y_subdivisions=61, size=3.0, location=(0.0, 0.0, 0.0))
+    bpy.ops.mesh.primitive_grid_add(x_subdivisions=60, y_subdivisions=60, size=3.0, location=(0.0, 0.0, 0.0))
     collider(bpy.context.active_object)
     bpy.ops.mesh.primitive_cylinder_add(vertices=64, radius=ROD_R, depth=ROD_LEN, location=(ROD_X, 0.0, ROD_Z),
                                         rotation=(math.pi / 2, 0.0, 0.0))
