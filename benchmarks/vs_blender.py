@@ -84,7 +84,7 @@ FPS = 60
 SIZES = {"hanging": [32, 64, 128, 256], "drape": [32, 64, 128], "crumple": [32, 64, 128]}
 DURATION = {"hanging": 2.0, "drape": 2.0, "crumple": 1.5}      # s simulated (the crumple's as self_collision.py's)
 QUICK_SIZE = 8   # --quick: every scene at 8², one pair
-PENETRATION_TOL = 1e-3    # m: a run "has no penetration" when no kept frame has a point deeper in an obstacle
+PENETRATION_TOL = 1e-3    # m: a run "has no penetration" when no frame has a point deeper inside an obstacle
 SPHERE_R = 0.3
 ROD_R, ROD_CENTER, ROD_HALF = 0.03, (0.1, 0.0, 0.04), 1.0    # the crumple's rod: a capsule along y
 
