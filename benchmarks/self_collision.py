@@ -60,14 +60,35 @@ def edge_list(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
 
 
-def count_crossings(x: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> int:
-    """Edges through triangles that share no vertex with them (k-d tree candidates, Moller-Trumbore)."""
+def _near_pairs(x: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every (edge, triangle) pair that can cross: the edge's midpoint within its half-length plus the
+    triangle's radius (its farthest vertex from its centroid) of the triangle's centroid. The k-d trees are
+    queried by groups (the longest 5 % of edges and the largest 5 % of triangles apart), each with its own
+    largest radius, so that a few stretched elements do not widen the search for all (on a piled 128² frame
+    a single radius made several times more candidates)."""
     a, b, c = (x[faces[:, k]] for k in range(3))
     cen = (a + b + c) / 3
-    r = max(np.linalg.norm(p - cen, axis=1).max() for p in (a, b, c)) + \
-        np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1).max() / 2
-    m = cKDTree((x[edges[:, 0]] + x[edges[:, 1]]) / 2).sparse_distance_matrix(cKDTree(cen), r, output_type="ndarray")
-    i, j = m["i"], m["j"]
+    rad = np.max([np.linalg.norm(q - cen, axis=1) for q in (a, b, c)], axis=0)
+    mid = (x[edges[:, 0]] + x[edges[:, 1]]) / 2
+    half = np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1) / 2
+    eg = [g for g in np.split(np.argsort(half), [int(0.95 * len(half))]) if len(g)]
+    tg = [g for g in np.split(np.argsort(rad), [int(0.95 * len(rad))]) if len(g)]
+    ii, jj = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+    trees = [cKDTree(cen[g]) for g in tg]
+    for ge in eg:
+        te = cKDTree(mid[ge])
+        for gt, tt in zip(tg, trees):
+            m = te.sparse_distance_matrix(tt, half[ge].max() + rad[gt].max(), output_type="ndarray")
+            i, j = ge[m["i"]], gt[m["j"]]
+            keep = m["v"] <= half[i] + rad[j]
+            ii.append(i[keep])
+            jj.append(j[keep])
+    return np.concatenate(ii), np.concatenate(jj)
+
+
+def count_crossings(x: np.ndarray, faces: np.ndarray, edges: np.ndarray) -> int:
+    """Edges through triangles that share no vertex with them (k-d tree candidates, Moller-Trumbore)."""
+    i, j = _near_pairs(x, faces, edges)
     keep = ~(edges[i][:, :, None] == faces[j][:, None, :]).any(axis=(1, 2))
     i, j = i[keep], j[keep]
     p, d = x[edges[i, 0]], x[edges[i, 1]] - x[edges[i, 0]]

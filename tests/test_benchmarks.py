@@ -183,6 +183,12 @@ def test_vs_blender_without_blender_and_its_worker_reports(tmp_path):
     (row,) = json.loads((tmp_path / "vs_blender.json").read_text())["rows"]
     assert row["n"] == 8 and row["ours_ms"] > 0 and row["blender_ms"] is None and row["ratio"] is None
     assert "| hanging | 8² |" in out and "| - | - |" in out
+    # --merge combines runs' rows (a scene and size given twice: one row)
+    merged = subprocess.run([sys.executable, script, "--merge", str(tmp_path / "vs_blender.json"),
+                             str(tmp_path / "vs_blender.json"), "--out", str(tmp_path / "m")],
+                            check=True, capture_output=True, text=True).stdout
+    assert len(json.loads((tmp_path / "m" / "vs_blender.json").read_text())["rows"]) == 1
+    assert "| hanging | 8² |" in merged
     out = subprocess.run([sys.executable, script, "--worker", "--scenes", "drape", "--sizes", "8", "--fixed"],
                          check=True, capture_output=True, text=True).stdout
     res = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
@@ -325,3 +331,34 @@ def test_mg_levers_and_preconditioner_peer_run_small(tmp_path):
         (s, f, pc) for s, f in (("hanging", True), ("hanging", False), ("drape", False))
         for pc in ("multigrid", "multigrid_smoothed")}
     assert all(r["iterations_per_frame"] >= 1 and r["ms_per_frame"] > 0 for r in rows)
+
+
+def test_vs_blender_crumple_worker_and_its_judge(tmp_path):
+    """The crumple's worker (ours, 8², 0.2 s) writes every frame's positions, and the judge that reads both
+    programs' positions finds no crossing and no penetration in them; the judge's penetration on points placed
+    inside the sphere, the floor and the rod, and its crossing count on a grid folded through itself."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import numpy as np
+    from vs_blender import grid_faces, judge, penetration
+
+    save = tmp_path / "x.npy"
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "vs_blender.py"), "--worker", "--scenes",
+                          "crumple", "--sizes", "8", "--duration", "0.2", "--save", str(save)],
+                         check=True, capture_output=True, text=True).stdout
+    res = json.loads(next(line for line in out.splitlines() if line.startswith("RESULT "))[7:])
+    assert res["scene"] == "crumple" and res["method"] == "rounds" and res["finite"]
+    X = np.load(save)
+    assert X.shape == (13, 64, 3)
+    q = judge("crumple", X)
+    assert q["crossings_max"] == 0 and q["penetration_max"] == 0.0 and q["rms_speed_end"] > 0
+    assert penetration("hanging", X[0]) is None
+    assert penetration("drape", np.array([[0.0, 0.0, 0.29], [0.0, 0.0, 0.5]])) == pytest.approx(0.01)
+    assert penetration("crumple", np.array([[0.3, 0.0, -0.002], [0.1, 0.4, 0.02], [0.1, 1.5, 0.02]])) == \
+        pytest.approx(0.01)
+    # a 4 x 4 flat grid whose top row is pushed down through the row below: its edges pierce triangles
+    x = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0)), -1).reshape(-1, 2)
+    x = np.concatenate([x, np.zeros((16, 1))], 1)
+    folded = x.copy()
+    folded[12:, 1], folded[12:, 2] = 1.5, np.where(np.arange(4) % 2, 1.0, -1.0)
+    assert judge("hanging", np.stack([x, x]))["crossings_max"] == 0
+    assert len(grid_faces(4)) == 18 and judge("hanging", np.stack([x, folded]))["crossings_end"] > 0
