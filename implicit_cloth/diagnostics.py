@@ -65,7 +65,8 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
         the structural springs (all springs if the cloth has no structural
         ones; 0 without springs). With a membrane (:mod:`implicit_cloth.effects.membrane`) its energy is
         counted with the springs' and ``max_strain`` is the largest of its threads' strains ``|w| - 1`` and
-        the structural springs' (the bend springs' are then left out).
+        the structural springs' (the bend springs' are then left out). The dihedral bending's energy
+        (:mod:`implicit_cloth.effects.dihedral`) is counted with the springs' too.
     """
     pe = model.potential_energy(x)
     kin = model.kinetic_energy(v)
@@ -82,6 +83,7 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
     if membrane is not None:   # its stored energy with the springs', its threads' strain with the structural
         spr += pe["membrane"]
         strain = max(strain, float(cast(Any, membrane).strains(x)[:, :2].max()))
+    spr += pe.get("bending", 0.0)   # the dihedral bending's (implicit_cloth.effects.dihedral) with the springs'
     return {"kinetic": kin, "gravity": grav, "springs": spr, "potential": grav + spr,
             "total": kin + grav + spr, "max_strain": strain}
 

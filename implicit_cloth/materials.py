@@ -39,6 +39,18 @@ the mean of the warp and weft directions):
 The damping (N*s/m) is the preset's structural (stretch) and shear springs'
 ``kd``, which on a square grid damp the same strain rate per unit width; the
 measurements give none (KES's hysteresis is rate-independent).
+
+Bending modulus (the dihedral bending, :mod:`implicit_cloth.effects.dihedral`)
+-----------------------------------------------------------------------------
+``Material.bending`` is the sheet's bending modulus ``B`` in N m (bending
+moment per unit width per unit curvature; energy per area ``B kappa^2 / 2``)
+where a published measurement was found, and None otherwise (a scene asking
+such a preset for it with ``[cloth.bending] model = "dihedral"`` must give
+``stiffness``). Kawabata's KES-FB2 pure bending test reports the bending
+rigidity ``B`` in gf cm^2/cm (the mean of warp and weft), the same quantity:
+``1 gf cm^2/cm = 1 gf cm = 9.80665e-3 N x 1e-2 m = 9.80665e-5 N m``
+(:func:`kes_bending`). No damping comes with it (KES's bending hysteresis 2HB
+is rate-independent): the preset's dihedral damping is 0.
 """
 
 from __future__ import annotations
@@ -87,19 +99,22 @@ class Material:
     bend: SpringParams
     density: float  # kg/m^2
     membrane: MembraneParams | None = None
+    #: the bending modulus ``B`` in N m (the dihedral bending), None without a published measurement here
+    bending: float | None = None
 
     def springs(self) -> dict[str, SpringParams]:
         return {"structural": self.structural, "shear": self.shear, "bend": self.bend}
 
 
 def _m(name: str, s: tuple[float, float], sh: tuple[float, float], b: tuple[float, float], rho: float,
-       membrane: tuple[float, float, float] | None = None) -> Material:
-    """A preset; ``membrane``: ``(k_u, k_v, k_s)`` in N/m, damped with the springs' ``kd``."""
+       membrane: tuple[float, float, float] | None = None, bending: float | None = None) -> Material:
+    """A preset; ``membrane``: ``(k_u, k_v, k_s)`` in N/m, damped with the springs' ``kd``; ``bending``: ``B`` in
+    N m."""
     mem = None
     if membrane is not None:
         mem = MembraneParams(SpringParams(membrane[0], s[1]), SpringParams(membrane[1], s[1]),
                              SpringParams(membrane[2], sh[1]))
-    return Material(name, SpringParams(*s), SpringParams(*sh), SpringParams(*b), rho, mem)
+    return Material(name, SpringParams(*s), SpringParams(*sh), SpringParams(*b), rho, mem, bending)
 
 
 #: KES-FB1's tensile load, 500 gf/cm in N/m
@@ -116,12 +131,20 @@ def kes_shear(g: float) -> float:
     return g * 9.80665e-3 / 0.01 * 180.0 / 3.141592653589793
 
 
+def kes_bending(b: float) -> float:
+    """KES-FB2's bending rigidity ``B`` (gf cm^2/cm) as the bending modulus in N m."""
+    return b * 9.80665e-3 * 1e-2
+
+
 # Denim (the only preset with a measurement here, see docs/scene.md "Materials"): the KES-FB values of fabric A
 # of "Regenerated Cellulose-Based Denim Fabric for Tropical Regions: An Analytical Study on Making Denim
 # Comfortable", Journal of Textiles (Hindawi), 2016, article ID 4614168, Table 5 ("Primary hand values",
 # https://www.hindawi.com/journals/jtex/2016/4614168/tab5/):
 # EMT 5.515 %, LT 0.712, G 2.180 gf/cm/degree -> k_u = k_v = 6330 N/m, k_s = 122.5 N/m.
 _DENIM_MEMBRANE = (kes_stretch(5.515, 0.712), kes_stretch(5.515, 0.712), kes_shear(2.180))
+# and its bending rigidity in the same table (row 5, "Bending rigidity (B)", fabric A): B = 0.172 gf cm^2/cm
+# -> 1.687e-5 N m.
+_DENIM_BENDING = kes_bending(0.172)
 
 
 #: Material presets by name (read-only mapping).
@@ -129,7 +152,7 @@ MATERIALS: Mapping[str, Material] = MappingProxyType(
     {
         "cotton": _m("cotton", (5.0e3, 1.0), (5.0e2, 0.5), (2.0e1, 0.1), 0.15),
         "silk": _m("silk", (2.0e3, 0.5), (1.0e2, 0.2), (2.0, 0.02), 0.06),
-        "denim": _m("denim", (2.0e4, 2.0), (2.0e3, 1.0), (2.0e2, 0.5), 0.40, _DENIM_MEMBRANE),
+        "denim": _m("denim", (2.0e4, 2.0), (2.0e3, 1.0), (2.0e2, 0.5), 0.40, _DENIM_MEMBRANE, _DENIM_BENDING),
         "leather": _m("leather", (5.0e4, 4.0), (1.0e4, 2.0), (1.0e3, 1.0), 0.90),
         "rubber": _m("rubber", (1.0e3, 0.5), (1.0e3, 0.5), (5.0e1, 0.1), 1.20),
     }

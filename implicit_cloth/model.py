@@ -23,7 +23,7 @@ from .backend import Backend, get_backend
 from .config.validate import fmt
 from .effects import Effect, SpringSet, build_effects
 from .errors import SceneError
-from .scene import cloth_pieces, piece_path
+from .scene import cloth_pieces, dihedral_bending, piece_path
 
 
 @dataclass
@@ -96,6 +96,11 @@ class Model:
 
             self.effects.append(build_membrane(self, [self._membrane_piece(k, c, where[k], geos[k])
                                                       for k, c in membranes]))
+        bent = [k for k, c in enumerate(pieces) if dihedral_bending(c)]
+        if bent:        # likewise: a scene without [cloth.bending] model = "dihedral" is unchanged
+            from .effects.dihedral import build as build_dihedral
+
+            self.effects.append(build_dihedral(self, [self._bending_piece(k, pieces[k]) for k in bent]))
         self.effect_names: list[str] = scene.effects
         #: the elastic effect made of springs (strain measures, strain limiting), None without springs
         self.springs: SpringSet | None = next((cast(SpringSet, e) for e in self.effects if e.name == "springs"),
@@ -123,6 +128,13 @@ class Model:
             tex = _cloth.mesh_uv(c["mesh"], geo.faces, f"{where}.membrane")[keep]
             uv = metric_rest_coordinates(self.rest_positions, fs[keep], tex)
         return np.arange(a, b)[keep], uv, c["membrane"]
+
+    def _bending_piece(self, k: int, c: dict[str, Any]) -> tuple[np.ndarray, dict[str, Any]]:
+        """Piece ``k``'s triangles of positive rest area (rows of :attr:`faces`, whose shared edges are the
+        hinges) and its ``[cloth.bending]`` table."""
+        a, b = self.piece_faces[k]
+        fs = self.faces[a:b]
+        return fs[~_cloth.degenerate_faces(self.rest_positions, fs)], c["bending"]
 
     # ------------------------------------------------------------------ pins
     def _init_pins(self, pieces: list[tuple[list[dict[str, Any]], Any, int]]) -> None:

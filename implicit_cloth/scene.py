@@ -63,12 +63,18 @@ CYCLES = ("V", "K")
 MAX_NEWTON_ITERATIONS = 100
 CLOTH_KEYS = (
     "size", "resolution", "center", "plane", "mesh", "scale", "translation",
-    "mass", "density", "pins", "material", "springs", "velocity", "membrane",
+    "mass", "density", "pins", "material", "springs", "velocity", "membrane", "bending",
 )
 #: ``[cloth.membrane]``'s conditions (:mod:`implicit_cloth.effects.membrane`, BW98's stretch and shear)
 MEMBRANE_CONDITIONS: tuple[str, ...] = ("stretch_u", "stretch_v", "shear")
 #: the spring kinds the membrane replaces
 MEMBRANE_REPLACES: tuple[str, ...] = ("structural", "shear")
+#: ``[cloth.bending]``'s keys and models: the bend springs (today's), or the hinges' dihedral angles
+#: (:mod:`implicit_cloth.effects.dihedral`)
+BENDING_KEYS: tuple[str, ...] = ("model", "stiffness", "damping", "rest_angle")
+BENDING_MODELS: tuple[str, ...] = ("springs", "dihedral")
+#: the dihedral bending's rest angles: the rest mesh's, or 0 (flat)
+REST_ANGLES: tuple[str, ...] = ("mesh", "flat")
 COLLISION_KEYS = ("method", "thickness", "restitution", "max_iterations", "newton_iterations", "friction_speed",
                   "friction_newton", "friction_pause", "self_collision", "self_friction")
 #: ``collision.method``: contacts as constraints found in rounds of solves ("rounds"), or as a barrier energy in
@@ -293,6 +299,42 @@ def _membrane(d: Any, material: str | None, where: str = "cloth") -> dict[str, d
     return out
 
 
+def _bending(d: Any, material: str | None, where: str = "cloth") -> dict[str, Any]:
+    """``[cloth.bending]``: ``model = "springs"`` (the bend springs, ``[cloth.springs.bend]``) or ``"dihedral"``
+    with the bending modulus ``stiffness`` (N m, > 0; or the material's measured one,
+    :attr:`Material.bending <implicit_cloth.materials.Material.bending>`), ``damping`` (N m s, >= 0, default 0)
+    and ``rest_angle`` ("mesh": the rest mesh's, the default; "flat")."""
+    path = f"{where}.bending"
+    check_keys(path, d, BENDING_KEYS)
+    model = choice(f"{path}.model", d["model"], BENDING_MODELS) if "model" in d else "springs"
+    if model == "springs":
+        for key in ("stiffness", "damping", "rest_angle"):
+            if key in d:
+                raise SceneError(f"{path}.{key}: not used with {path}.model = 'springs' (the bend springs take "
+                                 f"theirs from {where}.springs.bend, in N/m and N*s/m), got {d[key]!r}")
+        return {"model": "springs"}
+    preset = MATERIALS[material].bending if material is not None else None
+    if "stiffness" in d:
+        k = number(f"{path}.stiffness", d["stiffness"], lo=0.0, lo_open=True)
+    elif preset is not None:
+        k = preset
+    elif material is not None:
+        raise SceneError(f"{path}.stiffness: missing (material {material!r} has no measured bending modulus; give "
+                         f"the sheet's bending modulus in N m)")
+    else:
+        raise SceneError(f"{path}.stiffness: missing (the sheet's bending modulus in N m; no material preset "
+                         f"supplies it)")
+    kd = number(f"{path}.damping", d["damping"], lo=0.0) if "damping" in d else 0.0
+    rest = choice(f"{path}.rest_angle", d["rest_angle"], REST_ANGLES) if "rest_angle" in d else "mesh"
+    return {"model": "dihedral", "stiffness": k, "damping": kd, "rest_angle": rest}
+
+
+def dihedral_bending(c: Mapping[str, Any]) -> bool:
+    """Whether a normalised cloth piece bends by its hinges' dihedral angles (``[cloth.bending] model =
+    "dihedral"``) instead of bend springs."""
+    return c.get("bending", {}).get("model") == "dihedral"
+
+
 def _cloth_mesh(d: Mapping[str, Any], base_dir: Path | None, where: str = "cloth") -> dict[str, Any]:
     """A mesh cloth's shape keys: the file, scale and translation."""
     for key in ("size", "resolution", "plane", "center"):
@@ -363,6 +405,15 @@ def _cloth(d: Any, base_dir: Path | None, where: str = "cloth") -> dict[str, Any
                 raise SceneError(f"{where}.springs.{kind}: not used with {where}.membrane (the membrane replaces "
                                  f"the structural and shear springs; bend springs stay)")
             out["springs"].pop(kind, None)
+    if "bending" in d:     # likewise: only when given
+        if d["bending"] is None:
+            raise fail(f"{where}.bending", "must be a table", None)
+        out["bending"] = _bending(d["bending"], material, where)
+        if out["bending"]["model"] == "dihedral":
+            if isinstance(d.get("springs"), Mapping) and "bend" in d["springs"]:
+                raise SceneError(f"{where}.springs.bend: not used with {where}.bending.model = 'dihedral' (the "
+                                 f"dihedral bending replaces the bend springs)")
+            out["springs"].pop("bend", None)
     return out
 
 
@@ -575,6 +626,8 @@ class Scene:
         names += [k for k in SPRING_KINDS if any(k in c["springs"] for c in cloth_pieces(self.data))]
         if any("membrane" in c for c in cloth_pieces(self.data)):
             names.append("membrane")
+        if any(dihedral_bending(c) for c in cloth_pieces(self.data)):
+            names.append("bending")
         if self.data["obstacles"]:
             names.append("collision")
         if self_collision(self.data):
