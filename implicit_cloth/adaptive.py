@@ -132,6 +132,8 @@ class StepController:
         #: smallest accepted step since the caller last reset it to inf, s (per-frame reports)
         self.window_min_step = math.inf
         self.measures = diagnostics.StepMeasures(model)
+        #: the criteria the last Newton retry was made for
+        self.retry_for: frozenset[str] = frozenset()
 
     def check(self, old: State, new: State, info: StepInfo, h: float) -> dict[str, float]:
         """The criteria a substep from ``old`` to ``new`` of ``h`` seconds fails, each with its amount.
@@ -154,6 +156,14 @@ class StepController:
         if gain > self.max_energy_growth * e_step:
             failed["energy"] = gain
         return failed
+
+    def passes(self, old: State, new: State, h: float, work: float = 0.0) -> bool:
+        """Whether the substep ``old -> new`` meets the energy criterion as :meth:`check` judges it (``work``: its
+        external work beside the pins' and the wind's, J): a Newton retry made for it alone whose iterate passes
+        is done (more iterations would not change the verdict). A retry for the strain converges (stopping
+        there tore coincident vertices' springs past the report's bound)."""
+        gain, e_step = self.measures.balance(old, new, h, work)
+        return bool(gain <= self.max_energy_growth * e_step)
 
     def _verdict(self, failed: dict[str, float], newton: int | None) -> tuple[set[str], bool, bool]:
         """The criteria of ``failed`` that count (not suspended), whether the step is redone with Newton
@@ -215,6 +225,7 @@ class StepController:
                 if nonlinear:                              # the same step, solved nonlinearly
                     self.stats.newton_retries += 1
                     newton = self.newton_iterations
+                    self.retry_for = frozenset(active)
                     continue
                 if self.level < self.max_halvings:
                     self.stats.retries += 1

@@ -343,6 +343,19 @@ class Simulator:
                                            t_collision=t_detect + time.perf_counter() - t0)
         return new, info
 
+    def _retry_done(self, state: State, h: float,
+                    newton: int | None) -> Callable[[np.ndarray, np.ndarray], bool] | None:
+        """For adaptive stepping's Newton retry of the step from ``state`` (``newton`` given): the test that ends
+        its iterations once the iterate passes the energy balance, when that is what it is redone for: more
+        iterations would not change the verdict. None otherwise."""
+        adaptive = self.adaptive
+        if newton is None or adaptive is None or adaptive.retry_for != {"energy"}:
+            return None
+
+        def done(x1: np.ndarray, v1: np.ndarray) -> bool:
+            return adaptive.passes(state, State(x1, v1, state.t + h), h)
+        return done
+
     def _implicit_step(self, state: State, h: float, pins: Constraints, newton: int | None) -> tuple[State, Any]:
         """The integrator's step without obstacles. A step redone with Newton iterations (adaptive stepping's
         energy or strain retry) after its single linearisation from the same state, ``h`` and pins continues
@@ -353,12 +366,13 @@ class Simulator:
         assert isinstance(integ, ImplicitIntegrator)
         last = self._linear
         self._linear = None
+        done = self._retry_done(state, h, newton)
         if (newton is not None and newton > 1 and last is not None and last[0] is state and last[1] == h
                 and last[2] is pins):
-            new, info = integ.step(state, h, pins, newton=newton - 1, start=last[3])
+            new, info = integ.step(state, h, pins, newton=newton - 1, start=last[3], done=done)
             info.newton_iterations += 1
             return new, info
-        new, info = integ.step(state, h, pins, newton=newton)
+        new, info = integ.step(state, h, pins, newton=newton, done=done)
         if newton is None and integ.newton_iterations == 1 and self.strain_limiter is None:
             self._linear = (state, h, pins, new.v.copy())
         return new, info

@@ -221,7 +221,7 @@ def test_a_newton_redo_continues_from_the_linearisation_it_redoes(monkeypatch, i
     for mode in ("continue", "solve again"):
         if mode == "solve again":
             def again(self, state, h, pins, newton):
-                return self.integrator.step(state, h, pins, newton=newton)
+                return self.integrator.step(state, h, pins, newton=newton, done=self._retry_done(state, h, newton))
 
             monkeypatch.setattr(ic.Simulator, "_implicit_step", again)
         traj = _perturbed(_flat(1e5, integrator)).run(frame_rate=240)

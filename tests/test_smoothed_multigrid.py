@@ -91,11 +91,14 @@ def test_smoothed_prolongation_and_coarse_matrix_against_an_independent_construc
 
 
 @pytest.mark.parametrize("accelerator", ACCELERATORS)
-def test_the_coarse_levels_weigh_a_contact_region_by_its_mass(accelerator):
+def test_the_coarse_levels_weigh_a_contact_region_by_its_mass(accelerator, monkeypatch):
     """A region in contact (partially constrained vertices, normals of a sphere below the cloth): the coarse
     levels weigh a coarse function's motion along the contacts' normals by the vertices' masses, not by the
     filtered matrix's identity (1 kg, 2e4 times a vertex's mass here), and CG needs fewer iterations: 19 against
     26 when measured; the solution within the tolerance of a direct solve either way, the constraints exact."""
+    # the state measured: adaptive stepping's energy retries solved to convergence (they now stop once the
+    # balance passes, which leaves another mid-swing state: 33 against 38 iterations there)
+    monkeypatch.setattr(ic.Simulator, "_retry_done", lambda self, state, h, newton: None)
     sim = ic.Simulator(_scene(res=(48, 48)), dt=H)
     m, A, b = _system(sim, steps=20)
     x = sim.positions

@@ -285,7 +285,8 @@ class ImplicitIntegrator(Integrator):
     def step(self, state: State, h: float, constraints: Constraints | None = None,
              guess: np.ndarray | None = None, newton: int | None = None,
              start: np.ndarray | None = None,
-             redone: Callable[[np.ndarray], bool] | None = None) -> tuple[State, StepInfo]:
+             redone: Callable[[np.ndarray], bool] | None = None,
+             done: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> tuple[State, StepInfo]:
         """One step under ``constraints`` (the model's pins when None).
 
         ``guess`` warm-starts the first solve's free part; ``newton`` (default ``solver.newton_iterations``)
@@ -298,7 +299,10 @@ class ImplicitIntegrator(Integrator):
         in such a step; True says the caller will solve the step again whatever the friction does (it releases a
         contact that pulls its vertex), so the friction's Newton iterations are not run and the step is the
         first solve's, with :attr:`StepInfo.friction_converged` None (on the shared 64² drape over 2 s, 0.96 of
-        the 2.98 correction solves a frame were made for rounds the collider then threw away).
+        the 2.98 correction solves a frame were made for rounds the collider then threw away). ``done``: the
+        caller's test of an end state ``(x1, v1)`` that ends the Newton iterations of a step without contacts
+        (adaptive stepping's energy and strain criteria: once the iterate passes them, more iterations would not
+        change the step's verdict).
         """
         c = self._pins if constraints is None else constraints
         info = StepInfo(newton_iterations=1)
@@ -320,13 +324,13 @@ class ImplicitIntegrator(Integrator):
             # the constrained components of v0 + z, the free ones of the earlier attempt
             v1 = v + z + filt.apply((start - v - z).reshape(-1)).reshape(-1, 3)
             info.newton_iterations = 0
-            return self._newton(state, h, c, scheme, v1, filt, max(iters, 1), info)
+            return self._newton(state, h, c, scheme, v1, filt, max(iters, 1), info, done)
         dv = self._solve(A, b, z, filt, info, guess, self.contact_tolerance if c.n_contacts else None)
         # smoothed friction solved to convergence: Newton only where the solve left a contact's friction off its
         # linearisation (its speed across the sliding speed, or its direction turned)
         nonlinear = c.n_contacts > 0 and c.nonlinear
         if iters > 1 and np.all(np.isfinite(dv)) and not nonlinear:
-            return self._newton(state, h, c, scheme, v + dv, filt, iters - 1, info)
+            return self._newton(state, h, c, scheme, v + dv, filt, iters - 1, info, done)
         v1 = v + dv
         x1 = scheme.x_pred + scheme.beta * v1
         if c.n_contacts:   # A dv - b = c_v F_c: the constraint force F_c over the step h is the impulse
@@ -467,6 +471,12 @@ class ImplicitIntegrator(Integrator):
         if c.damped:
             f[c.contact] += c.damping_force(v)
 
+    @staticmethod
+    def _done(done: Callable[[np.ndarray, np.ndarray], bool] | None, c: Constraints, scheme: Scheme,
+              v: np.ndarray) -> bool:
+        """The caller's ``done`` of a step without contacts at the iterate ``v`` (False without one)."""
+        return done is not None and not c.n_contacts and done(scheme.x_pred + scheme.beta * v, v)
+
     def _conservative(self, x: np.ndarray, t: float) -> tuple[float, np.ndarray]:
         """Potential energy (J) and conservative force (N) of the model's conservative forces at ``x``."""
         return forces.conservative(self.model.effects, x, t)
@@ -475,7 +485,8 @@ class ImplicitIntegrator(Integrator):
         return forces.energy(self.model.effects, x)
 
     def _newton(self, state: State, h: float, c: Constraints, scheme: Scheme, v: np.ndarray, filt: Filter,
-                iterations: int, info: StepInfo) -> tuple[State, StepInfo]:
+                iterations: int, info: StepInfo,
+                done: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> tuple[State, StepInfo]:
         """Continue the step by Newton iterations with a line search on the incremental potential.
 
         The step's nonlinear equation ``R(v) = M (v - v_hat) - c_v F(x(v), v) = 0``, ``x(v) = x_pred + c_v v``,
@@ -561,7 +572,8 @@ class ImplicitIntegrator(Integrator):
                 break                                   # not contracting: given up, the caller keeps the first solve
             last_err = err
             if met or step <= NEWTON_TOLERANCE * np.sqrt(float(np.einsum("ij,ij->", M * (v - state.v),
-                                                                         v - state.v))):
+                                                                         v - state.v))) \
+                    or self._done(done, c, scheme, v):
                 break
         if nonlinear:
             info.friction_converged = met

@@ -63,8 +63,9 @@ class BDF2(BackwardEuler):
         return Scheme((4.0 / 9.0) * h * h, (2.0 / 3.0) * h, b, x + dx_hist, (2.0 / 3.0) * h,
                        (4.0 / 3.0) * v - (1.0 / 3.0) * old.v)
 
-    def step(self, state: State, h: float, constraints=None, guess=None, newton=None, start=None, redone=None):
+    def step(self, state: State, h: float, constraints=None, guess=None, newton=None, start=None, redone=None,
+             done=None):
         self._history(state)
-        new, info = super().step(state, h, constraints, guess, newton, start, redone)
+        new, info = super().step(state, h, constraints, guess, newton, start, redone, done)
         self._tried = self._tried[-63:] + [(state, new, h)]
         return new, info
