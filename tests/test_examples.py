@@ -37,7 +37,7 @@ def _scene(name: str, **simulation) -> dict:
 
 
 def test_every_example_is_checked_here():
-    assert set(SCENES) == {"cloth_on_cone", "crumple", "drape_sphere", "hanging", "keyframed_sphere",
+    assert set(SCENES) == {"cloth_on_cone", "crumple", "drape_sphere", "five_sheets", "hanging", "keyframed_sphere",
                            "membrane_drape", "moving_sphere", "stiff_large_step", "two_sheets", "wind"}
 
 
@@ -57,7 +57,7 @@ def test_references_point_at_sections_that_exist(name):
 def test_every_example_runs_a_few_frames(name):
     data = _scene(name)
     dt = data["simulation"]["dt"]
-    slow = name in ("crumple", "two_sheets")           # self-collision: a few steps only
+    slow = name in ("crumple", "two_sheets", "five_sheets")     # self-collision: a few steps only
     sim = ic.Simulator(data)
     traj = sim.run(duration=(3 if slow else 10) * dt)
     assert traj.report["status"] in ("ok", "warning")
@@ -212,3 +212,34 @@ def test_sweep_cases_and_the_explicit_one_diverging():
                and c.params["simulation.dt"] == 0.005 and c.params["cloth.springs.structural.stiffness"] == 1e3]
     with pytest.raises(DivergenceError):
         ic.Simulator(mildest[0].raw).run()
+
+
+@pytest.mark.slow
+def test_five_sheets_keep_their_order_never_cross_and_rest_apart():
+    """The first second (the sheets land and drape; the whole 2 s takes minutes): no edge through a triangle at
+    any kept frame (the segment-triangle judge of test_self_collision), each sheet above the one below it over
+    the sphere's top at the end (its height interpolated on the lower sheet's vertices), and every pair of
+    non-adjacent primitives at least half the thickness apart."""
+    from scipy.interpolate import LinearNDInterpolator
+    from test_self_collision import crossings
+
+    pytest.importorskip("ipctk")
+    for k in range(5):
+        _claim("five_sheets", f"piece {k}: vertices {k * 1024} .. {k * 1024 + 1023}")
+    _claim("five_sheets", "The layers keep their order")
+    d = _scene("five_sheets")
+    assert d["collision"]["method"] == "barrier" and [c["center"][2] for c in d["cloth"]] == \
+        pytest.approx([0.40, 0.42, 0.44, 0.46, 0.48])
+    sim = ic.Simulator(d)
+    traj = sim.run(duration=1.0)
+    assert traj.report["status"] == "ok", traj.report["reason"]
+    faces = traj.faces
+    assert max(crossings(x, faces) for x in traj.positions) == 0
+    x = traj.positions[-1]
+    for k in range(4):
+        low, up = x[k * 1024:(k + 1) * 1024], x[(k + 1) * 1024:(k + 2) * 1024]
+        z_low = LinearNDInterpolator(low[:, :2], low[:, 2])
+        top = up[np.hypot(up[:, 0], up[:, 1]) < 0.1]
+        assert len(top) > 10 and np.all(top[:, 2] > z_low(top[:, :2]))
+    th = d["collision"]["thickness"]
+    assert sim.cloth_contact.term(x).distance(x) >= th / 2

@@ -651,7 +651,8 @@ class ImplicitIntegrator(Integrator):
             a = 1.0
             cut = bounds.cut(x, d)
             slope_c = float(np.dot(filt.apply(R.copy().reshape(-1)), cut.reshape(-1))) if cut is not d else 0.0
-            if cut is not d and slope_c < 0.0 and phi(v + cut) <= phi(v) + 1e-4 * slope_c:
+            if cut is not d and slope_c < 0.0 and min(phi(v + cut) - phi(v) - 1e-4 * slope_c,
+                                                      phi(v + 0.5 * cut) - phi(v) - 0.5e-4 * slope_c) <= 0.0:
                 d, slope = cut, slope_c          # the cut direction lowers the potential whole: taken as it is
             elif cut is not d:
                 found = self._contact_direction(A, R, x, d, cut, c, bounds, filt, info, coupling, diag0)
