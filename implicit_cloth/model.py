@@ -138,12 +138,24 @@ class Model:
 
     # ------------------------------------------------------------------ pins
     def _init_pins(self, pieces: list[tuple[list[dict[str, Any]], Any, int]]) -> None:
-        """Pins of every piece: ``(pin groups, the piece's geometry, its first vertex)``, indices per piece."""
+        """Pins of every piece: ``(pin groups, the piece's geometry, its first vertex)``, indices per piece.
+
+        Exact pins (no ``stiffness``) constrain their vertices (:attr:`pinned`); soft ones (``stiffness``) are
+        zero-length springs to their paths, a force (:mod:`implicit_cloth.effects.pin_springs`), kept in
+        :attr:`soft_pins` until the effects are built."""
         idx: list[int] = []
         vel: list[list[float]] = []
+        motion: list[Any] = []
         seen: dict[int, str] = {}
+        keyed: dict[int, list[int]] = {}          # keyframed group (its number) -> its rows in idx
+        keys_of: dict[int, Any] = {}
+        #: soft pin groups: (vertices, velocity, keyframes or None, stiffness, damping)
+        self.soft_pins: list[tuple[list[int], list[float], Any, float, float]] = []
+        n_group = 0
         for groups, geo, offset in pieces:
             for g in groups:
+                n_group += 1
+                verts: list[int] = []
                 for m, v in enumerate(g["vertices"]):
                     where = g["paths"][m]
                     p = geo.corner(v, where) if isinstance(v, str) else int(v)
@@ -151,32 +163,94 @@ class Model:
                         what = "cloth" if len(pieces) == 1 else "piece"
                         raise SceneError(where, f"vertex index out of range (the {what} has {geo.n_vertices} "
                                                 f"vertices)", v)
-                    p += offset
+                    verts.append(p + offset)
+                if "stiffness" in g:
+                    self.soft_pins.append((verts, list(g["velocity"]), g.get("keyframes"), float(g["stiffness"]),
+                                           float(g.get("damping", 0.0))))
+                    continue
+                how = (list(g["velocity"]), g.get("keyframes"))
+                for m, p in enumerate(verts):
+                    where = g["paths"][m]
                     if p in seen:
-                        if g["velocity"] != vel[idx.index(p)]:
+                        if how != motion[idx.index(p)]:
+                            what = "motions" if any(h[1] is not None for h in (how, motion[idx.index(p)])) \
+                                else "velocities"
                             raise SceneError(f"{where}: vertex {p - offset} is pinned twice with different "
-                                             f"velocities, got {fmt(v)}")
+                                             f"{what}, got {fmt(g['vertices'][m])}")
                         continue
                     seen[p] = where
+                    if how[1] is not None:
+                        keyed.setdefault(n_group, []).append(len(idx))
+                        keys_of[n_group] = how[1]
                     idx.append(p)
-                    vel.append(list(g["velocity"]))
+                    vel.append(list(g["velocity"]) if how[1] is None else [0.0, 0.0, 0.0])
+                    motion.append(how)
         self.pinned = np.asarray(idx, dtype=np.int64)
         self.pin_velocity = np.asarray(vel, dtype=float).reshape(-1, 3)
         self.pin_anchor = self.rest_positions[self.pinned].copy()   # position at t = 0
+        #: the keyframed pins' paths (:class:`~implicit_cloth.pin_paths.PinPaths`), None without keyframed pins
+        #: (constant-velocity pins then follow ``pin_anchor + pin_velocity t`` exactly as before)
+        self.pin_paths: Any = None
+        if keyed:
+            from .pin_paths import PinPaths
+
+            self.pin_paths = PinPaths(self.pin_anchor, [(np.asarray(r), v, None) for r, v in
+                                                        self._constant_rows(keyed)]
+                                      + [(np.asarray(r), None, keys_of[k]) for k, r in keyed.items()])
+
+    def _constant_rows(self, keyed: dict[int, list[int]]) -> list[tuple[list[int], np.ndarray]]:
+        """The rows of :attr:`pinned` outside the keyframed groups, one group per row (their constant velocity)."""
+        inkey = {r for rows in keyed.values() for r in rows}
+        return [([r], self.pin_velocity[r]) for r in range(len(self.pinned)) if r not in inkey]
+
+    @property
+    def pins_keyframed(self) -> bool:
+        """Whether some exact pins follow keyframes (their step velocities then change from step to step)."""
+        return self.pin_paths is not None
 
     def set_pin_anchors(self, x: np.ndarray, t: float) -> None:
         """Make pins pass through ``x[pinned]`` at time ``t`` (used when positions are assigned)."""
-        self.pin_anchor = x[self.pinned] - self.pin_velocity * t
+        if self.pin_paths is not None:
+            self.pin_paths.reanchor(x[self.pinned], t)
+            self.pin_anchor = self.pin_paths.anchors.copy()
+        else:
+            self.pin_anchor = x[self.pinned] - self.pin_velocity * t
+        for e in self.effects if hasattr(self, "effects") else []:
+            if hasattr(e, "reanchor"):
+                e.reanchor(x, t)
 
     def pin_positions(self, t: float) -> np.ndarray:
         """Prescribed positions of the pinned vertices at time t, (P, 3) m."""
+        if self.pin_paths is not None:
+            return self.pin_paths.targets(t)
         return self.pin_anchor + self.pin_velocity * t
+
+    def pin_rates(self, t: float) -> np.ndarray:
+        """Velocities of the pinned vertices' paths at time t (a keyframed one's: of the segment starting at t),
+        (P, 3) m/s."""
+        if self.pin_paths is not None:
+            return self.pin_paths.rates(t)
+        return self.pin_velocity
+
+    def pin_velocity_at(self, x: np.ndarray, t: float, h: float) -> np.ndarray:
+        """The pinned vertices' velocity over the step ``[t, t + h]`` from positions ``x`` (N, 3): ``(target(t + h)
+        - x_p) / h``, so that they end the step on their paths (m/s, (P, 3)). Without keyframed pins
+        :attr:`pin_velocity` itself."""
+        if self.pin_paths is None:
+            return self.pin_velocity
+        return (self.pin_paths.targets(t + h) - x[self.pinned]) / h
+
+    def pin_speed(self) -> float:
+        """The largest speed of a pinned vertex's path, m/s (0 without pins)."""
+        if self.pin_paths is not None:
+            return self.pin_paths.max_speed()
+        return float(np.linalg.norm(self.pin_velocity, axis=1).max()) if len(self.pinned) else 0.0
 
     def apply_pins(self, x: np.ndarray, v: np.ndarray, t: float) -> None:
         """Set pinned vertices to their prescribed position and velocity at time t (in place)."""
         if len(self.pinned):
             x[self.pinned] = self.pin_positions(t)
-            v[self.pinned] = self.pin_velocity
+            v[self.pinned] = self.pin_rates(t)
 
     # ------------------------------------------------------------------ forces
     def forces(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray | None = None) -> np.ndarray:
