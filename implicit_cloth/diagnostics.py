@@ -157,7 +157,9 @@ class StepMeasures:
         m = self.model
         kin = m.kinetic_energy(s.v)
         grav = float(sum(e.energy(s.x) for e in self._fields))
-        spring = float(sum(e.energy(s.x) for e in self._elastic))
+        # an energy that depends on time (soft pins' moving targets: energy_at) at the state's own time
+        spring = float(sum(e.energy_at(s.x, s.t) if hasattr(e, "energy_at") else e.energy(s.x)
+                           for e in self._elastic))
         strain = None
         sp = m.springs
         if sp is not None and len(sp.i):      # spring energy and strains from one evaluation of the lengths

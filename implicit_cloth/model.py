@@ -101,6 +101,10 @@ class Model:
             from .effects.dihedral import build as build_dihedral
 
             self.effects.append(build_dihedral(self, [self._bending_piece(k, pieces[k]) for k in bent]))
+        if self.soft_pins:   # likewise: pins with a stiffness are zero-length springs to their paths
+            from .effects.pin_springs import build as build_pin_springs
+
+            self.effects.append(build_pin_springs(self, self.soft_pins))
         self.effect_names: list[str] = scene.effects
         #: the elastic effect made of springs (strain measures, strain limiting), None without springs
         self.springs: SpringSet | None = next((cast(SpringSet, e) for e in self.effects if e.name == "springs"),
