@@ -67,6 +67,18 @@ def test_keyframed_pins_are_on_their_paths_at_every_step_end(keys):
     assert np.all(np.isfinite(sim.positions[free]))
 
 
+@pytest.mark.parametrize("name", ["bdf2", "symplectic_euler", "verlet", "rk4"])
+def test_keyframed_pins_are_on_their_paths_with_every_integrator(name):
+    sim = ic.Simulator(_scene([{"vertices": ["top_left", "top_right"], "keyframes": KEYS}], n=4), integrator=name,
+                       dt=0.002)
+    p = sim.model.pinned
+    x0 = sim.positions[p].copy()
+    for _ in range(60):
+        sim.step(1)
+        assert np.abs(sim.positions[p] - _reference(KEYS, x0, sim.time)).max() < 1e-12
+    assert np.all(np.isfinite(sim.positions))
+
+
 def test_constant_and_fixed_pins_beside_keyframed_ones_are_as_before():
     """Fixed and constant-velocity pins follow ``a + w t`` exactly beside a keyframed group."""
     w = [0.2, 0.0, 0.1]
@@ -239,3 +251,18 @@ def test_keyframed_and_soft_pins_survive_the_scene_round_trip():
                  {"vertices": [2], "stiffness": 3.0, "damping": 0.1, "velocity": [0.0, 1.0, 0.0]}])
     s = Scene.from_dict(copy.deepcopy(sc))
     assert Scene.from_dict(source_of(s.data)).data == s.data
+
+
+def test_assigned_positions_move_keyframed_and_soft_pins_paths_with_them():
+    sim = ic.Simulator(_scene([{"vertices": ["top_left", "top_right"], "keyframes": KEYS},
+                               {"vertices": [0], "stiffness": 5.0, "keyframes": KEYS}]))
+    p = sim.model.pinned
+    x0 = sim.positions[p].copy()
+    sim.step(10)
+    d = np.array([0.1, -0.2, 0.05])
+    sim.positions = sim.positions + d
+    f = next(e for e in sim.model.effects if e.name == "pin_springs")
+    assert np.allclose(f.paths.targets(sim.time), sim.positions[[0]], rtol=0, atol=1e-14)
+    for _ in range(30):
+        sim.step(1)
+        assert np.abs(sim.positions[p] - _reference(KEYS, x0 + d, sim.time)).max() < 1e-12
