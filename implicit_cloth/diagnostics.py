@@ -54,7 +54,7 @@ from .model import Model
 DEFAULT_DIVERGENCE_FACTOR = 1000.0
 
 
-def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
+def measure(model: Model, x: np.ndarray, v: np.ndarray, t: float | None = None) -> dict[str, float]:
     """Energies (J) and the largest strain of a state.
 
     Returns
@@ -66,7 +66,8 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
         ones; 0 without springs). With a membrane (:mod:`implicit_cloth.effects.membrane`) its energy is
         counted with the springs' and ``max_strain`` is the largest of its threads' strains ``|w| - 1`` and
         the structural springs' (the bend springs' are then left out). The dihedral bending's energy
-        (:mod:`implicit_cloth.effects.dihedral`) is counted with the springs' too.
+        (:mod:`implicit_cloth.effects.dihedral`) is counted with the springs' too, and so are the soft pins'
+        springs' (:mod:`implicit_cloth.effects.pin_springs`, at time ``t`` when given: their targets move).
     """
     pe = model.potential_energy(x)
     kin = model.kinetic_energy(v)
@@ -84,6 +85,9 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
         spr += pe["membrane"]
         strain = max(strain, float(cast(Any, membrane).strains(x)[:, :2].max()))
     spr += pe.get("bending", 0.0)   # the dihedral bending's (implicit_cloth.effects.dihedral) with the springs'
+    if "pin_springs" in pe:          # soft pins' springs, at the state's time ``t`` when given (moving targets)
+        soft = next(e for e in model.effects if e.name == "pin_springs")
+        spr += cast(Any, soft).energy_at(x, t) if t is not None else pe["pin_springs"]
     return {"kinetic": kin, "gravity": grav, "springs": spr, "potential": grav + spr,
             "total": kin + grav + spr, "max_strain": strain}
 

@@ -267,6 +267,18 @@ class Model:
             e.force(x, v, t, out)
         return out
 
+    def force_rate(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray | None:
+        """``dF/dt`` at a fixed state (N, 3), N/s, of the forces that change with time (soft pins' moving targets:
+        an effect with ``rate(x, v, t, out)``), for the implicit step's linearisation in time; None when none
+        does (every other scene's step unchanged)."""
+        timed = [e for e in self.effects if hasattr(e, "rate")]
+        if not timed:
+            return None
+        out = np.zeros_like(x)
+        for e in timed:
+            cast(Any, e).rate(x, v, t, out)
+        return out
+
     def accelerations(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
         """``a = M^-1 F`` with pinned vertices' accelerations set to 0, (N, 3) m/s^2."""
         a = self.forces(x, v, t)

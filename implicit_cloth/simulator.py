@@ -581,7 +581,7 @@ class _Recorder:
         self.dt = sim.dt
         self.n_steps = max(1, int(round(duration / self.dt)))
         self.keep = _frame_steps(self.n_steps, self.dt, duration, frame_rate)
-        self.e0 = diagnostics.measure(model, st.x, st.v)
+        self.e0 = diagnostics.measure(model, st.x, st.v, st.t)
         self.scale = diagnostics.energy_scale(model, st.x, st.v)
         self.bound = factor * self.scale
         sim.health = Health()
@@ -596,6 +596,9 @@ class _Recorder:
         self.pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity)) and not self.pins_keyed
         self.pin_work, self.pin_p = 0.0, diagnostics.pin_power(model, st.x, st.v, st.t)
         self.pin_last = (st.copy(), diagnostics.pin_state(model, st.x, st.v, st.t)) if self.pins_keyed else None
+        #: soft pins with moving targets: their targets' work (trapezoid of their power) is the pins' work too
+        self.soft = next((e for e in model.effects if e.name == "pin_springs"), None)
+        self.soft_p = self.soft.power(st.x, st.v, st.t) if self.soft is not None else 0.0
         self.frames: dict[str, list[float]] = {k: [] for k in self.FRAME_KEYS}
         self.col = _CollisionTotals() if sim.collider is not None else None
         if self.col is not None:
@@ -650,6 +653,10 @@ class _Recorder:
             self.pin_work += diagnostics.pin_step_work(model, self.pin_last[0], new, self.pin_last[1], s1) \
                 + info.self_work
             self.pin_last = (new.copy(), s1)
+        if self.soft is not None:
+            p_soft = self.soft.power(sim.state.x, sim.state.v, sim.state.t)
+            self.pin_work += 0.5 * self.dt * (self.soft_p + p_soft)
+            self.soft_p = p_soft
         tot["steps"] += 1
         tot["iterations"] += info.iterations
         tot["max_iterations"] = max(tot["max_iterations"], info.iterations)
@@ -672,7 +679,7 @@ class _Recorder:
             if info.collision.failsafe:
                 sim.health.add("failsafe", sim.state.t, info.collision.failsafe)
         frame = self.next_frame < len(self.keep) and s == self.keep[self.next_frame]
-        m = diagnostics.measure(model, sim.state.x, sim.state.v) if frame else None
+        m = diagnostics.measure(model, sim.state.x, sim.state.v, sim.state.t) if frame else None
         acc["t_other"] += time.perf_counter() - ts - info.t_assembly - info.t_setup - info.t_solve
         if m is None:
             return True

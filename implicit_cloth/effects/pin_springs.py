@@ -8,10 +8,11 @@ target ``p(t)`` (the path an exact pin of the same table would follow: fixed, co
     D = sum_p c_p |v_p - p'(t)|^2 / 2                (W; ``damping = c``, N*s/m, default 0)
     F_p = -K_p (x_p - p(t)) - c_p (v_p - p'(t))
 
-Hessian blocks ``K_p I`` and ``c_p I`` on the diagonal, solved implicitly with the other forces. The target
-enters a step at the time the integrator evaluates the forces (the step's start for backward Euler's single
-linearisation, as the wind does), so a soft pin following a target at constant velocity ``w`` trails it by
-``h w`` at the step's end beyond what the other forces make it sag.
+Hessian blocks ``K_p I`` and ``c_p I`` on the diagonal, solved implicitly with the other forces. The implicit
+steps linearise the force in time too (:meth:`PinSprings.rate`, ``dF/dt = K p'``; backward Euler's and BDF2's
+right-hand sides take ``h dF/dt`` beside ``h dF/dx v``), so the spring pulls towards the target at the step's
+end: a soft pin following a target at constant velocity ``w`` sits where the other forces on it balance the
+spring (``m g / K`` below the target under gravity alone), without lagging a step behind.
 
 Energy balance: ``U`` depends on time through the target. Its change at a fixed ``x`` is work the moving
 target does on the cloth, booked as outside power (:meth:`PinSprings.power`)::
@@ -96,6 +97,11 @@ class PinSprings:
         if not np.any(rate):
             return 0.0
         return float(np.einsum("ij,ij->", self._force_rows(x, v, t), rate))
+
+    def rate(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
+        """Add ``dF/dt`` at fixed ``(x, v)``, ``K p'(t)`` (N/s; the targets move piecewise at constant velocity:
+        the damper's ``c p''`` is 0), for the implicit step's first-order change of the force over the step."""
+        np.add.at(out, self.idx, self.k[:, None] * self.paths.rates(t))
 
     def pairs(self) -> np.ndarray:
         return np.zeros((0, 2), dtype=np.int64)
