@@ -7,7 +7,11 @@ lengths, masses, lumped areas, pins and the declared effects. A
 
 Pins: vertex ``p`` follows ``x_p(t) = a_p + w_p t`` exactly, with prescribed
 velocity ``w_p`` (m/s) and anchor ``a_p`` (set from the initial positions, and
-again whenever the user assigns positions).
+again whenever the user assigns positions). A keyframed pin group follows its
+keys (:mod:`implicit_cloth.pin_paths`), each step prescribing the velocity that
+ends it on its path (:meth:`Model.pin_velocity_at`); a pin with a ``stiffness``
+is a soft pin, a zero-length spring to its path
+(:mod:`implicit_cloth.effects.pin_springs`), not a constraint.
 """
 
 from __future__ import annotations
@@ -53,7 +57,8 @@ class Model:
     pinned : (P,) int array
         Indices of pinned vertices.
     pin_velocity : (P, 3) array
-        Prescribed velocity of each pinned vertex, m/s.
+        Prescribed velocity of each pinned vertex, m/s (0 on keyframed ones: their step's velocity is
+        :meth:`pin_velocity_at`).
     effects : list
         The declared effects only (see :mod:`implicit_cloth.effects`).
     effect_names : list of str
