@@ -38,7 +38,7 @@ def _scene(name: str, **simulation) -> dict:
 
 def test_every_example_is_checked_here():
     assert set(SCENES) == {"cloth_on_cone", "crumple", "drape_sphere", "hanging", "keyframed_sphere",
-                           "membrane_drape", "moving_sphere", "stiff_large_step", "two_sheets", "wind"}
+                           "membrane_drape", "moving_sphere", "stiff_large_step", "towel_lift", "two_sheets", "wind"}
 
 
 @pytest.mark.parametrize("name", [*SCENES, "sweep"])
@@ -212,3 +212,19 @@ def test_sweep_cases_and_the_explicit_one_diverging():
                and c.params["simulation.dt"] == 0.005 and c.params["cloth.springs.structural.stiffness"] == 1e3]
     with pytest.raises(DivergenceError):
         ic.Simulator(mildest[0].raw).run()
+
+
+def test_towel_lift_corners_rise_turn_and_hold():
+    _claim("towel_lift", "the corners rise 0.2 m in the first second, then the pair turns a quarter turn (90 degrees) "
+                         "about the vertical through their midpoint in the next, and holds there")
+    _claim("towel_lift", "The third corner hangs on a soft pin (a zero-length spring to where it started)")
+    sim = ic.Simulator(_scene("towel_lift"))
+    p = sim.model.pinned
+    x0 = sim.positions[p].copy()
+    mid = x0.mean(axis=0)
+    lift = np.array([0.0, 0.0, 0.2])
+    turned = mid + lift + (x0 - mid) @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).T
+    np.testing.assert_allclose(sim.model.pin_positions(1.0), x0 + lift, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(sim.model.pin_positions(2.0), turned, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sim.model.pin_positions(2.5), turned, rtol=0, atol=1e-12)
+    assert len(p) == 2 and [e.name for e in sim.model.effects][-1] == "pin_springs"
