@@ -4,7 +4,8 @@ Two kinds, both in Baraff & Witkin's vocabulary (BW98 §5.3: a vertex constraine
 0, 1, 2 or 3 directions):
 
 * **Pins**: vertex ``p`` ends the step with the prescribed velocity ``w_p`` (all
-  three directions; its position follows ``a_p + w_p t`` exactly).
+  three directions; its position follows ``a_p + w_p t`` exactly; a keyframed pin's
+  ``w_p`` is its step's, :meth:`Model.pin_velocity_at <implicit_cloth.model.Model.pin_velocity_at>`).
 * **Contacts**: vertex ``i`` ends the step on the plane ``n_i . x_i(t + h) =
   offset_i``, with ``n_i`` the outward unit normal of an obstacle at the end of
   the step. The integrator turns the plane into a prescribed normal velocity with

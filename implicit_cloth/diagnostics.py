@@ -54,7 +54,7 @@ from .model import Model
 DEFAULT_DIVERGENCE_FACTOR = 1000.0
 
 
-def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
+def measure(model: Model, x: np.ndarray, v: np.ndarray, t: float | None = None) -> dict[str, float]:
     """Energies (J) and the largest strain of a state.
 
     Returns
@@ -66,7 +66,8 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
         ones; 0 without springs). With a membrane (:mod:`implicit_cloth.effects.membrane`) its energy is
         counted with the springs' and ``max_strain`` is the largest of its threads' strains ``|w| - 1`` and
         the structural springs' (the bend springs' are then left out). The dihedral bending's energy
-        (:mod:`implicit_cloth.effects.dihedral`) is counted with the springs' too.
+        (:mod:`implicit_cloth.effects.dihedral`) is counted with the springs' too, and so are the soft pins'
+        springs' (:mod:`implicit_cloth.effects.pin_springs`, at time ``t`` when given: their targets move).
     """
     pe = model.potential_energy(x)
     kin = model.kinetic_energy(v)
@@ -84,6 +85,9 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray) -> dict[str, float]:
         spr += pe["membrane"]
         strain = max(strain, float(cast(Any, membrane).strains(x)[:, :2].max()))
     spr += pe.get("bending", 0.0)   # the dihedral bending's (implicit_cloth.effects.dihedral) with the springs'
+    if "pin_springs" in pe:          # soft pins' springs, at the state's time ``t`` when given (moving targets)
+        soft = next(e for e in model.effects if e.name == "pin_springs")
+        spr += cast(Any, soft).energy_at(x, t) if t is not None else pe["pin_springs"]
     return {"kinetic": kin, "gravity": grav, "springs": spr, "potential": grav + spr,
             "total": kin + grav + spr, "max_strain": strain}
 
@@ -103,7 +107,7 @@ def energy_scale(model: Model, x: np.ndarray, v: np.ndarray, duration: float | N
     eff = model.scene.data["effects"]
     g = float(np.linalg.norm(eff.get("gravity", [0.0, 0.0, 0.0])))
     wind = float(np.linalg.norm(eff["wind"]["velocity"])) if "wind" in eff else 0.0
-    pin_speed = float(np.linalg.norm(model.pin_velocity, axis=1).max()) if len(model.pinned) else 0.0
+    pin_speed = model.pin_speed()
     v_max = float(np.linalg.norm(v, axis=1).max()) if len(v) else 0.0
     L = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
     m = model.total_mass
@@ -125,7 +129,10 @@ class StepMeasures:
 
     def __init__(self, model: Model) -> None:
         self.model = model
-        self._pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity))
+        self._pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity)) and not model.pins_keyframed
+        #: keyframed pins: their work is booked per step from the two states (:func:`pin_step_work`)
+        self._pins_keyed = model.pins_keyframed
+        self._pin_cache: list[tuple[Any, tuple[np.ndarray, float]]] = []
         self._fields = [e for e in model.effects if e.conservative and not e.elastic]
         self._elastic = [e for e in model.effects if e.elastic and e is not model.springs]
         self._cache: list[tuple[Any, tuple[float, float, float, np.ndarray | None, float]]] = []
@@ -134,6 +141,16 @@ class StepMeasures:
         """Power of the pins and of outside sources through the effects (the wind) on the cloth, W."""
         p = pin_power(self.model, s.x, s.v, s.t) if self._pins_move else 0.0
         return p + float(sum(e.power(s.x, s.v, s.t) for e in self.model.effects))
+
+    def _pin_state(self, s: Any) -> tuple[np.ndarray, float]:
+        """The effects' force on the pinned vertices (P, 3), N, and their kinetic energy, J, at state ``s``
+        (the last two cached)."""
+        for state, got in self._pin_cache:
+            if state is s:
+                return got
+        out = pin_state(self.model, s.x, s.v, s.t)
+        self._pin_cache = self._pin_cache[-1:] + [(s, out)]
+        return out
 
     def __call__(self, s: Any) -> tuple[float, float, float, np.ndarray | None, float]:
         """``(kinetic, field, stored)`` energies (J: gravity's, the springs'), spring strains ``(l - L0) / L0``
@@ -144,7 +161,9 @@ class StepMeasures:
         m = self.model
         kin = m.kinetic_energy(s.v)
         grav = float(sum(e.energy(s.x) for e in self._fields))
-        spring = float(sum(e.energy(s.x) for e in self._elastic))
+        # an energy that depends on time (soft pins' moving targets: energy_at) at the state's own time
+        spring = float(sum(e.energy_at(s.x, s.t) if hasattr(e, "energy_at") else e.energy(s.x)
+                           for e in self._elastic))
         strain = None
         sp = m.springs
         if sp is not None and len(sp.i):      # spring energy and strains from one evaluation of the lengths
@@ -161,6 +180,8 @@ class StepMeasures:
         k0, g0, s0, _, p0 = self(old)
         k1, g1, s1, _, p1 = self(new)
         w = 0.5 * h * (p0 + p1) + obstacle_work
+        if self._pins_keyed:
+            w += pin_step_work(self.model, old, new, self._pin_state(old), self._pin_state(new))
         gain = (k1 + g1 + s1) - (k0 + g0 + s0) - w
         e_step = max(k0, k1) + max(s0, s1) + abs(g1 - g0) + abs(w)
         return gain, e_step
@@ -177,3 +198,26 @@ def pin_power(model: Model, x: np.ndarray, v: np.ndarray, t: float) -> float:
         return 0.0
     f = model.forces(x, v, t)[model.pinned]
     return -float(np.einsum("ij,ij->", f, model.pin_velocity))
+
+
+def pin_state(model: Model, x: np.ndarray, v: np.ndarray, t: float) -> tuple[np.ndarray, float]:
+    """The effects' force on the pinned vertices (P, 3), N, and their kinetic energy, J."""
+    p = model.pinned
+    f = model.forces(x, v, t)[p]
+    return f, 0.5 * float(np.dot(model.masses[p], np.einsum("ij,ij->i", v[p], v[p])))
+
+
+def pin_step_work(model: Model, old: Any, new: Any, s0: tuple[np.ndarray, float],
+                  s1: tuple[np.ndarray, float]) -> float:
+    """Work the pins did on the cloth over a step from state ``old`` to ``new`` (``s0``, ``s1``: their
+    :func:`pin_state`), J: keyframed pins, whose velocity changes from step to step.
+
+    The pin holds vertex ``p`` on its path against the effects' force ``F_p`` and gives it the kinetic energy
+    it has, so its work is ``dK_p - int F_p . dx_p``, booked with the trapezoid as the constant pins' power
+    is: ``W = K_p(1) - K_p(0) - (F_p(0) + F_p(1)) / 2 . (x_p(1) - x_p(0))`` (for a pin of constant velocity
+    ``w`` this is ``h (P0 + P1) / 2`` with :func:`pin_power`'s ``P = -F . w``).
+    """
+    p = model.pinned
+    (f0, k0), (f1, k1) = s0, s1
+    dx = new.x[p] - old.x[p]
+    return (k1 - k0) - 0.5 * float(np.einsum("ij,ij->", f0 + f1, dx))

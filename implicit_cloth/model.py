@@ -7,7 +7,11 @@ lengths, masses, lumped areas, pins and the declared effects. A
 
 Pins: vertex ``p`` follows ``x_p(t) = a_p + w_p t`` exactly, with prescribed
 velocity ``w_p`` (m/s) and anchor ``a_p`` (set from the initial positions, and
-again whenever the user assigns positions).
+again whenever the user assigns positions). A keyframed pin group follows its
+keys (:mod:`implicit_cloth.pin_paths`), each step prescribing the velocity that
+ends it on its path (:meth:`Model.pin_velocity_at`); a pin with a ``stiffness``
+is a soft pin, a zero-length spring to its path
+(:mod:`implicit_cloth.effects.pin_springs`), not a constraint.
 """
 
 from __future__ import annotations
@@ -53,7 +57,8 @@ class Model:
     pinned : (P,) int array
         Indices of pinned vertices.
     pin_velocity : (P, 3) array
-        Prescribed velocity of each pinned vertex, m/s.
+        Prescribed velocity of each pinned vertex, m/s (0 on keyframed ones: their step's velocity is
+        :meth:`pin_velocity_at`).
     effects : list
         The declared effects only (see :mod:`implicit_cloth.effects`).
     effect_names : list of str
@@ -101,6 +106,10 @@ class Model:
             from .effects.dihedral import build as build_dihedral
 
             self.effects.append(build_dihedral(self, [self._bending_piece(k, pieces[k]) for k in bent]))
+        if self.soft_pins:   # likewise: pins with a stiffness are zero-length springs to their paths
+            from .effects.pin_springs import build as build_pin_springs
+
+            self.effects.append(build_pin_springs(self, self.soft_pins))
         self.effect_names: list[str] = scene.effects
         #: the elastic effect made of springs (strain measures, strain limiting), None without springs
         self.springs: SpringSet | None = next((cast(SpringSet, e) for e in self.effects if e.name == "springs"),
@@ -138,12 +147,24 @@ class Model:
 
     # ------------------------------------------------------------------ pins
     def _init_pins(self, pieces: list[tuple[list[dict[str, Any]], Any, int]]) -> None:
-        """Pins of every piece: ``(pin groups, the piece's geometry, its first vertex)``, indices per piece."""
+        """Pins of every piece: ``(pin groups, the piece's geometry, its first vertex)``, indices per piece.
+
+        Exact pins (no ``stiffness``) constrain their vertices (:attr:`pinned`); soft ones (``stiffness``) are
+        zero-length springs to their paths, a force (:mod:`implicit_cloth.effects.pin_springs`), kept in
+        :attr:`soft_pins` until the effects are built."""
         idx: list[int] = []
         vel: list[list[float]] = []
+        motion: list[Any] = []
         seen: dict[int, str] = {}
+        keyed: dict[int, list[int]] = {}          # keyframed group (its number) -> its rows in idx
+        keys_of: dict[int, Any] = {}
+        #: soft pin groups: (vertices, velocity, keyframes or None, stiffness, damping)
+        self.soft_pins: list[tuple[list[int], list[float], Any, float, float]] = []
+        n_group = 0
         for groups, geo, offset in pieces:
             for g in groups:
+                n_group += 1
+                verts: list[int] = []
                 for m, v in enumerate(g["vertices"]):
                     where = g["paths"][m]
                     p = geo.corner(v, where) if isinstance(v, str) else int(v)
@@ -151,32 +172,94 @@ class Model:
                         what = "cloth" if len(pieces) == 1 else "piece"
                         raise SceneError(where, f"vertex index out of range (the {what} has {geo.n_vertices} "
                                                 f"vertices)", v)
-                    p += offset
+                    verts.append(p + offset)
+                if "stiffness" in g:
+                    self.soft_pins.append((verts, list(g["velocity"]), g.get("keyframes"), float(g["stiffness"]),
+                                           float(g.get("damping", 0.0))))
+                    continue
+                how = (list(g["velocity"]), g.get("keyframes"))
+                for m, p in enumerate(verts):
+                    where = g["paths"][m]
                     if p in seen:
-                        if g["velocity"] != vel[idx.index(p)]:
+                        if how != motion[idx.index(p)]:
+                            what = "motions" if any(h[1] is not None for h in (how, motion[idx.index(p)])) \
+                                else "velocities"
                             raise SceneError(f"{where}: vertex {p - offset} is pinned twice with different "
-                                             f"velocities, got {fmt(v)}")
+                                             f"{what}, got {fmt(g['vertices'][m])}")
                         continue
                     seen[p] = where
+                    if how[1] is not None:
+                        keyed.setdefault(n_group, []).append(len(idx))
+                        keys_of[n_group] = how[1]
                     idx.append(p)
-                    vel.append(list(g["velocity"]))
+                    vel.append(list(g["velocity"]) if how[1] is None else [0.0, 0.0, 0.0])
+                    motion.append(how)
         self.pinned = np.asarray(idx, dtype=np.int64)
         self.pin_velocity = np.asarray(vel, dtype=float).reshape(-1, 3)
         self.pin_anchor = self.rest_positions[self.pinned].copy()   # position at t = 0
+        #: the keyframed pins' paths (:class:`~implicit_cloth.pin_paths.PinPaths`), None without keyframed pins
+        #: (constant-velocity pins then follow ``pin_anchor + pin_velocity t`` exactly as before)
+        self.pin_paths: Any = None
+        if keyed:
+            from .pin_paths import PinPaths
+
+            self.pin_paths = PinPaths(self.pin_anchor, [(np.asarray(r), v, None) for r, v in
+                                                        self._constant_rows(keyed)]
+                                      + [(np.asarray(r), None, keys_of[k]) for k, r in keyed.items()])
+
+    def _constant_rows(self, keyed: dict[int, list[int]]) -> list[tuple[list[int], np.ndarray]]:
+        """The rows of :attr:`pinned` outside the keyframed groups, one group per row (their constant velocity)."""
+        inkey = {r for rows in keyed.values() for r in rows}
+        return [([r], self.pin_velocity[r]) for r in range(len(self.pinned)) if r not in inkey]
+
+    @property
+    def pins_keyframed(self) -> bool:
+        """Whether some exact pins follow keyframes (their step velocities then change from step to step)."""
+        return self.pin_paths is not None
 
     def set_pin_anchors(self, x: np.ndarray, t: float) -> None:
         """Make pins pass through ``x[pinned]`` at time ``t`` (used when positions are assigned)."""
-        self.pin_anchor = x[self.pinned] - self.pin_velocity * t
+        if self.pin_paths is not None:
+            self.pin_paths.reanchor(x[self.pinned], t)
+            self.pin_anchor = self.pin_paths.anchors.copy()
+        else:
+            self.pin_anchor = x[self.pinned] - self.pin_velocity * t
+        for e in self.effects if hasattr(self, "effects") else []:
+            if hasattr(e, "reanchor"):
+                e.reanchor(x, t)
 
     def pin_positions(self, t: float) -> np.ndarray:
         """Prescribed positions of the pinned vertices at time t, (P, 3) m."""
+        if self.pin_paths is not None:
+            return self.pin_paths.targets(t)
         return self.pin_anchor + self.pin_velocity * t
+
+    def pin_rates(self, t: float) -> np.ndarray:
+        """Velocities of the pinned vertices' paths at time t (a keyframed one's: of the segment starting at t),
+        (P, 3) m/s."""
+        if self.pin_paths is not None:
+            return self.pin_paths.rates(t)
+        return self.pin_velocity
+
+    def pin_velocity_at(self, x: np.ndarray, t: float, h: float) -> np.ndarray:
+        """The pinned vertices' velocity over the step ``[t, t + h]`` from positions ``x`` (N, 3): ``(target(t + h)
+        - x_p) / h``, so that they end the step on their paths (m/s, (P, 3)). Without keyframed pins
+        :attr:`pin_velocity` itself."""
+        if self.pin_paths is None:
+            return self.pin_velocity
+        return (self.pin_paths.targets(t + h) - x[self.pinned]) / h
+
+    def pin_speed(self) -> float:
+        """The largest speed of a pinned vertex's path, m/s (0 without pins)."""
+        if self.pin_paths is not None:
+            return self.pin_paths.max_speed()
+        return float(np.linalg.norm(self.pin_velocity, axis=1).max()) if len(self.pinned) else 0.0
 
     def apply_pins(self, x: np.ndarray, v: np.ndarray, t: float) -> None:
         """Set pinned vertices to their prescribed position and velocity at time t (in place)."""
         if len(self.pinned):
             x[self.pinned] = self.pin_positions(t)
-            v[self.pinned] = self.pin_velocity
+            v[self.pinned] = self.pin_rates(t)
 
     # ------------------------------------------------------------------ forces
     def forces(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray | None = None) -> np.ndarray:
@@ -187,6 +270,18 @@ class Model:
             out.fill(0.0)
         for e in self.effects:
             e.force(x, v, t, out)
+        return out
+
+    def force_rate(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray | None:
+        """``dF/dt`` at a fixed state (N, 3), N/s, of the forces that change with time (soft pins' moving targets:
+        an effect with ``rate(x, v, t, out)``), for the implicit step's linearisation in time; None when none
+        does (every other scene's step unchanged)."""
+        timed = [e for e in self.effects if hasattr(e, "rate")]
+        if not timed:
+            return None
+        out = np.zeros_like(x)
+        for e in timed:
+            cast(Any, e).rate(x, v, t, out)
         return out
 
     def accelerations(self, x: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:

@@ -213,18 +213,31 @@ def _pins(value: Any, n_vertices: int | None = None, where: str = "cloth") -> li
     for k, item in enumerate(value):
         path = f"{where}.pins[{k}]"
         if isinstance(item, Mapping):
-            check_keys(path, item, ("vertices", "velocity"))
+            check_keys(path, item, PIN_KEYS)
             if "vertices" not in item:
                 raise SceneError(f"{path}.vertices: missing (a pin table needs its vertices)")
             verts = item["vertices"]
             if not is_list(verts) or not len(verts):
                 raise fail(f"{path}.vertices", "must be a non-empty list of vertex indices or corner names", verts)
+            if "keyframes" in item and "velocity" in item:
+                raise fail(f"{path}.velocity", "cannot be given with keyframes (the keyframes give the pins' "
+                                               "motion)", item["velocity"])
             paths = [f"{path}.vertices[{m}]" for m in range(len(verts))]
-            groups.append({
+            group: dict[str, Any] = {
                 "vertices": [vertex(p, v) for p, v in zip(paths, verts)],
                 "velocity": vector(f"{path}.velocity", item.get("velocity", [0.0, 0.0, 0.0]), 3),
                 "paths": paths,
-            })
+            }
+            if "keyframes" in item:
+                group["keyframes"] = _pin_keyframes(f"{path}.keyframes", item["keyframes"])
+            if "stiffness" in item:
+                group["stiffness"] = number(f"{path}.stiffness", item["stiffness"], lo=0.0, lo_open=True)
+            if "damping" in item:
+                if "stiffness" not in item:
+                    raise fail(f"{path}.damping", "needs stiffness (only a soft pin, one with a stiffness, has "
+                                                  "a damping)", item["damping"])
+                group["damping"] = number(f"{path}.damping", item["damping"], lo=0.0)
+            groups.append(group)
         else:
             loose.append(vertex(path, item))
             loose_paths.append(path)
@@ -233,6 +246,32 @@ def _pins(value: Any, n_vertices: int | None = None, where: str = "cloth") -> li
     if n_vertices is not None:
         _pins_in_range(groups, n_vertices, "cloth" if where == "cloth" else "piece")
     return groups
+
+
+#: the keys of a pin table (``cloth.pins[k]``)
+PIN_KEYS = ("vertices", "velocity", "keyframes", "stiffness", "damping")
+
+
+def _pin_keyframes(path: str, value: Any) -> list[dict[str, Any]]:
+    """A pin group's ``keyframes``: a non-empty list of ``{time, translation, rotation}`` (s >= 0, strictly
+    increasing; m, the group's displacement from its place at t = 0; rad, a rotation vector about the group's
+    centre at t = 0), translation and rotation 0 when left out."""
+    if not is_list(value) or not len(value):
+        raise fail(path, "must be a non-empty list of tables {time, translation, rotation}", value)
+    out: list[dict[str, Any]] = []
+    for k, key in enumerate(value):
+        p = f"{path}[{k}]"
+        check_keys(p, key, ("time", "translation", "rotation"))
+        if "time" not in key:
+            raise SceneError(f"{p}.time: missing (each keyframe needs its time, s)")
+        t = number(f"{p}.time", key["time"], lo=0.0)
+        if out and t <= out[-1]["time"]:
+            raise fail(f"{p}.time", f"keyframe times must be strictly increasing (the previous is "
+                                    f"{out[-1]['time']:g} s)", key["time"])
+        out.append({"time": t,
+                    "translation": vector(f"{p}.translation", key.get("translation", [0.0, 0.0, 0.0]), 3),
+                    "rotation": vector(f"{p}.rotation", key.get("rotation", [0.0, 0.0, 0.0]), 3)})
+    return out
 
 
 def _grid_vertices(cloth: Mapping[str, Any]) -> int | None:
@@ -525,7 +564,11 @@ def _pins_source(groups: list[Any]) -> list[Any]:
             if m.group(2) is None:       # a loose entry: cloth.pins[k]
                 items[int(m.group(1))] = v
             else:                        # a table: cloth.pins[k].vertices[j]
-                items.setdefault(int(m.group(1)), {"vertices": [], "velocity": g["velocity"]})["vertices"].append(v)
+                table = {"vertices": [], "velocity": g["velocity"],
+                         **{k: g[k] for k in ("keyframes", "stiffness", "damping") if k in g}}
+                if "keyframes" in g:
+                    del table["velocity"]
+                items.setdefault(int(m.group(1)), table)["vertices"].append(v)
     return [items[k] for k in sorted(items)]
 
 

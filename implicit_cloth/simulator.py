@@ -138,6 +138,8 @@ class Simulator:
         self.model.apply_pins(x, v, 0.0)
         self.state = State(x, v, 0.0)
         self._pins = Constraints.of_pins(self.model)
+        #: the last keyframed step's pins ``(state, h, constraints)`` (:meth:`_step_pins`)
+        self._keyed_pins: tuple[State, float, Constraints] | None = None
         #: the last single linearisation without obstacles: (state, h, pins, end velocities), for its retry
         self._linear: tuple[State, float, Constraints, np.ndarray] | None = None
         self.collider: Any = None
@@ -265,7 +267,7 @@ class Simulator:
 
             def resolve(idx: np.ndarray, vel: np.ndarray) -> State:
                 nonlocal info
-                again, info = self._obstacle_substep(state, h, newton, self._pins.with_pins(idx, vel))
+                again, info = self._obstacle_substep(state, h, newton, self._step_pins(state, h).with_pins(idx, vel))
                 info.absorb(first)
                 if info.collision is not None and first.collision is not None:
                     info.collision.t_collision += first.collision.t_collision
@@ -274,6 +276,19 @@ class Simulator:
         new = sc.step(state, new, h, self.collider, resolve)
         info.self_work = sc.last_work
         return new, info
+
+    def _step_pins(self, state: State, h: float) -> Constraints:
+        """The pins of the step of ``h`` from ``state``: the model's constant ones as they are; keyframed ones
+        with this step's velocities (:meth:`Model.pin_velocity_at`: each ends the step on its path), the same
+        object for the same ``(state, h)``."""
+        if not self.model.pins_keyframed:
+            return self._pins
+        last = self._keyed_pins
+        if last is not None and last[0] is state and last[1] == h:
+            return last[2]
+        c = Constraints(self._pins.pinned, self.model.pin_velocity_at(state.x, state.t, h))
+        self._keyed_pins = (state, h, c)
+        return c
 
     def _obstacle_substep(self, state: State, h: float, newton: int | None = None,
                           pins: Constraints | None = None) -> tuple[State, Any]:
@@ -286,7 +301,7 @@ class Simulator:
         corrected state. ``newton``: Newton iterations asked for (None: the solver's setting).
         """
         col = self.collider
-        pins = self._pins if pins is None else pins
+        pins = self._step_pins(state, h) if pins is None else pins
         if self.barrier and (col is not None or self.cloth_contact is not None):
             return self._barrier_step(state, h, pins)
         if col is not None and self.integrator.implicit:
@@ -566,7 +581,7 @@ class _Recorder:
         self.dt = sim.dt
         self.n_steps = max(1, int(round(duration / self.dt)))
         self.keep = _frame_steps(self.n_steps, self.dt, duration, frame_rate)
-        self.e0 = diagnostics.measure(model, st.x, st.v)
+        self.e0 = diagnostics.measure(model, st.x, st.v, st.t)
         self.scale = diagnostics.energy_scale(model, st.x, st.v)
         self.bound = factor * self.scale
         sim.health = Health()
@@ -577,8 +592,13 @@ class _Recorder:
             sim.strain_limiter.reset_stats()
         if sim.self_collider is not None:
             sim.self_collider.totals.reset(st)
-        self.pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity))
+        self.pins_keyed = model.pins_keyframed    # keyframed pins: work booked per step from the two states
+        self.pins_move = bool(len(model.pinned)) and bool(np.any(model.pin_velocity)) and not self.pins_keyed
         self.pin_work, self.pin_p = 0.0, diagnostics.pin_power(model, st.x, st.v, st.t)
+        self.pin_last = (st.copy(), diagnostics.pin_state(model, st.x, st.v, st.t)) if self.pins_keyed else None
+        #: soft pins with moving targets: their targets' work (trapezoid of their power) is the pins' work too
+        self.soft = next((e for e in model.effects if e.name == "pin_springs"), None)
+        self.soft_p = self.soft.power(st.x, st.v, st.t) if self.soft is not None else 0.0
         self.frames: dict[str, list[float]] = {k: [] for k in self.FRAME_KEYS}
         self.col = _CollisionTotals() if sim.collider is not None else None
         if self.col is not None:
@@ -627,6 +647,16 @@ class _Recorder:
             p_new = diagnostics.pin_power(model, sim.state.x, sim.state.v, sim.state.t)
             self.pin_work += 0.5 * self.dt * (self.pin_p + p_new) + info.self_work
             self.pin_p = p_new
+        elif self.pin_last is not None:
+            new = sim.state
+            s1 = diagnostics.pin_state(model, new.x, new.v, new.t)
+            self.pin_work += diagnostics.pin_step_work(model, self.pin_last[0], new, self.pin_last[1], s1) \
+                + info.self_work
+            self.pin_last = (new.copy(), s1)
+        if self.soft is not None:
+            p_soft = self.soft.power(sim.state.x, sim.state.v, sim.state.t)
+            self.pin_work += 0.5 * self.dt * (self.soft_p + p_soft)
+            self.soft_p = p_soft
         tot["steps"] += 1
         tot["iterations"] += info.iterations
         tot["max_iterations"] = max(tot["max_iterations"], info.iterations)
@@ -649,7 +679,7 @@ class _Recorder:
             if info.collision.failsafe:
                 sim.health.add("failsafe", sim.state.t, info.collision.failsafe)
         frame = self.next_frame < len(self.keep) and s == self.keep[self.next_frame]
-        m = diagnostics.measure(model, sim.state.x, sim.state.v) if frame else None
+        m = diagnostics.measure(model, sim.state.x, sim.state.v, sim.state.t) if frame else None
         acc["t_other"] += time.perf_counter() - ts - info.t_assembly - info.t_setup - info.t_solve
         if m is None:
             return True

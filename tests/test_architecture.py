@@ -19,7 +19,7 @@ PKG = Path(__file__).resolve().parents[1] / "implicit_cloth"
 LAYERS: list[tuple[str, ...]] = [
     ("errors", "materials", "kernels*", "interrupt", "rowwise"),
     ("config*", "report", "backend", "forces"),
-    ("files", "geometry", "obstacles", "objfile", "cloth"),
+    ("files", "geometry", "obstacles", "objfile", "cloth", "pin_paths"),
     ("scene",),
     ("assembly", "solvers*", "effects*"),
     ("model", "constraints"),

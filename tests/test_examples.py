@@ -38,7 +38,7 @@ def _scene(name: str, **simulation) -> dict:
 
 def test_every_example_is_checked_here():
     assert set(SCENES) == {"cloth_on_cone", "crumple", "drape_sphere", "five_sheets", "hanging", "keyframed_sphere",
-                           "membrane_drape", "moving_sphere", "stiff_large_step", "two_sheets", "wind"}
+                           "membrane_drape", "moving_sphere", "stiff_large_step", "towel_lift", "two_sheets", "wind"}
 
 
 @pytest.mark.parametrize("name", [*SCENES, "sweep"])
@@ -243,3 +243,19 @@ def test_five_sheets_keep_their_order_never_cross_and_rest_apart():
         assert len(top) > 10 and np.all(top[:, 2] > z_low(top[:, :2]))
     th = d["collision"]["thickness"]
     assert sim.cloth_contact.term(x).distance(x) >= th / 2
+
+
+def test_towel_lift_corners_rise_turn_and_hold():
+    _claim("towel_lift", "the corners rise 0.2 m in the first second, then the pair turns a quarter turn (90 degrees) "
+                         "about the vertical through their midpoint in the next, and holds there")
+    _claim("towel_lift", "The third corner hangs on a soft pin (a zero-length spring to where it started)")
+    sim = ic.Simulator(_scene("towel_lift"))
+    p = sim.model.pinned
+    x0 = sim.positions[p].copy()
+    mid = x0.mean(axis=0)
+    lift = np.array([0.0, 0.0, 0.2])
+    turned = mid + lift + (x0 - mid) @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).T
+    np.testing.assert_allclose(sim.model.pin_positions(1.0), x0 + lift, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(sim.model.pin_positions(2.0), turned, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sim.model.pin_positions(2.5), turned, rtol=0, atol=1e-12)
+    assert len(p) == 2 and [e.name for e in sim.model.effects][-1] == "pin_springs"

@@ -24,4 +24,7 @@ class BackwardEuler(ImplicitIntegrator):
     def _scheme(self, state: State, h: float, info: StepInfo) -> Scheme:
         x, v, t = state.x, state.v, state.t
         A, f0, kv = self._linearize(x, v, t, h * h, h, v, info)
+        ft = self.model.force_rate(x, v, t)   # forces that change with time at a fixed state (soft pins' targets)
+        if ft is not None:
+            return Scheme(h * h, h, h * (f0 + h * kv + h * ft), x, h, v)
         return Scheme(h * h, h, h * (f0 + h * kv), x, h, v)

@@ -60,6 +60,9 @@ class BDF2(BackwardEuler):
         w = dx_hist + (2.0 / 3.0) * h * v
         A, f0, kw = self._linearize(x, v, t, (4.0 / 9.0) * h * h, (2.0 / 3.0) * h, w, info)
         b = self.model.masses[:, None] * ((v - old.v) / 3.0) + (2.0 / 3.0) * h * (f0 + kw)
+        ft = self.model.force_rate(x, v, t)   # forces that change with time at a fixed state (soft pins' targets)
+        if ft is not None:
+            b += (2.0 / 3.0) * h * h * ft
         return Scheme((4.0 / 9.0) * h * h, (2.0 / 3.0) * h, b, x + dx_hist, (2.0 / 3.0) * h,
                        (4.0 / 3.0) * v - (1.0 / 3.0) * old.v)
 
