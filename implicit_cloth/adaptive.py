@@ -152,18 +152,24 @@ class StepController:
             over = (eps1 > self.max_strain) & (eps1 > eps0)
             if np.any(over):
                 failed["strain"] = float(eps1[over].max())
-        gain, e_step = self.measures.balance(old, new, h, info.external_work)
-        if gain > self.max_energy_growth * e_step:
+        gain = self._energy_gain(old, new, h, info.external_work)
+        if gain is not None:
             failed["energy"] = gain
         return failed
+
+    def _energy_gain(self, old: State, new: State, h: float, work: float) -> float | None:
+        """The energy the substep gained beyond its external work ``work`` and the pins', J, when that is more
+        than the balance allows (``max_energy_growth`` of the energy it moves about) or not a number; None
+        otherwise."""
+        gain, e_step = self.measures.balance(old, new, h, work)
+        return None if gain <= self.max_energy_growth * e_step else gain
 
     def passes(self, old: State, new: State, h: float, work: float = 0.0) -> bool:
         """Whether the substep ``old -> new`` meets the energy criterion as :meth:`check` judges it (``work``: its
         external work beside the pins' and the wind's, J): a Newton retry made for it alone whose iterate passes
         is done (more iterations would not change the verdict). A retry for the strain converges (stopping
         there tore coincident vertices' springs past the report's bound)."""
-        gain, e_step = self.measures.balance(old, new, h, work)
-        return bool(gain <= self.max_energy_growth * e_step)
+        return self._energy_gain(old, new, h, work) is None
 
     def _verdict(self, failed: dict[str, float], newton: int | None) -> tuple[set[str], bool, bool]:
         """The criteria of ``failed`` that count (not suspended), whether the step is redone with Newton

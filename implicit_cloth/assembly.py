@@ -148,6 +148,21 @@ class SystemMatrix:
         vals = np.concatenate([np.ones(2 * len(p)), -np.ones(2 * len(p))])
         return sp.csr_array((vals, (rows, np.tile(p, 4))), shape=(self.n_blocks, len(pairs)))
 
+    def element_index(self, elements: np.ndarray) -> tuple[np.ndarray, sp.csr_array | None]:
+        """Where the blocks of elements of ``m`` vertices (triangles, hinges) go: ``(E, m * m)`` positions in
+        :attr:`blocks`, element ``e``'s vertex pair ``(i, j)`` at ``[e, m i + j]`` (every pair must be in the
+        pattern), and for the numpy back-end the scatter ``G`` (``n_blocks`` x ``E m^2``) with ``G @ X.reshape(-1,
+        9)`` adding each element's blocks ``X[e, i, j]`` to them (None for the compiled one)."""
+        elements = np.asarray(elements, dtype=np.int64)
+        m = elements.shape[1]
+        rows = np.repeat(elements, m, axis=1)          # (E, m^2): i of (i, j) = (0,0) (0,1) ... (1,0) ...
+        cols = np.tile(elements, (1, m))
+        bidx = np.ascontiguousarray(self.block_index(rows.ravel(), cols.ravel()).reshape(-1, m * m))
+        if self.backend.compiled:
+            return bidx, None
+        k = bidx.size
+        return bidx, sp.csr_array((np.ones(k), (bidx.ravel(), np.arange(k))), shape=(self.n_blocks, k))
+
     def reset(self) -> None:
         """Zero all block values."""
         self.blocks.fill(0.0)

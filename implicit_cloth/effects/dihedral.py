@@ -244,14 +244,10 @@ class Dihedral:
         """Index maps into ``system``'s blocks (vertex pair ``(i, j)`` of hinge ``e`` at ``16 e + 4 i + j``) and the
         back-end (the system's)."""
         self.backend = system.backend
-        h = self.hinges
-        rows = np.repeat(h, 4, axis=1)
-        cols = np.tile(h, (1, 4))
-        bidx = system.block_index(rows.ravel(), cols.ravel()).reshape(-1, 16)
-        self._bidx = np.ascontiguousarray(bidx, dtype=np.int64)
-        if not self.backend.compiled:
-            m = bidx.size
-            self._G = sp.csr_array((np.ones(m), (bidx.ravel(), np.arange(m))), shape=(system.n_blocks, m))
+        bidx, G = system.element_index(self.hinges)
+        self._bidx = bidx
+        if G is not None:
+            self._G = G
 
     def blocks(self, x: np.ndarray, c_x: float, c_v: float) -> np.ndarray:
         """Each hinge's ``(c_x B + c_v B_d) w g_i g_j^T`` blocks (H, 4, 4, 3, 3) ``[e, i, j]`` (numpy)."""

@@ -247,14 +247,10 @@ class Membrane:
         """Index maps into ``system``'s blocks (corner pair ``(i, j)`` of triangle ``t`` at ``9 t + 3 i + j``)
         and the back-end (the system's)."""
         self.backend = system.backend
-        f = self.faces
-        rows = np.repeat(f, 3, axis=1)          # (T, 9): i of (i, j) = (0,0) (0,1) (0,2) (1,0) ...
-        cols = np.tile(f, (1, 3))
-        bidx = system.block_index(rows.ravel(), cols.ravel()).reshape(-1, 9)
-        self._bidx = np.ascontiguousarray(bidx, dtype=np.int64)
-        if not self.backend.compiled:
-            m = bidx.size
-            self._G = sp.csr_array((np.ones(m), (bidx.ravel(), np.arange(m))), shape=(system.n_blocks, m))
+        bidx, G = system.element_index(self.faces)
+        self._bidx = bidx
+        if G is not None:
+            self._G = G
 
     def blocks(self, x: np.ndarray, c_x: float, c_v: float) -> np.ndarray:
         """Each triangle's ``c_x d2U/dx2 + c_v d2D/dv2`` blocks (T, 3, 3, 3, 3) ``[t, i, j]`` (numpy)."""

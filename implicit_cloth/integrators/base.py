@@ -627,11 +627,13 @@ class ImplicitIntegrator(Integrator):
         v = bounds.start(x0, bounds.cut(x0, v))
         floor = MINIMIZE_FLOOR * np.sqrt(float(np.sum(M)))
         sysm = self.model.system
+        diag0 = np.empty((self.model.n, 3, 3)) if terms else None   # the diagonal blocks without the contacts'
         for _ in range(iterations):
             x = x0 + cv * v
             t0 = time.perf_counter()
             A, f, _ = self.model.linearize(x, v, t1, scheme.c_x, cv, None, lazy=True)
-            diag0 = sysm.blocks[sysm.diag_index] if terms else None     # without the contacts' blocks (a copy)
+            if diag0 is not None:
+                np.take(sysm.blocks, sysm.diag_index, axis=0, out=diag0)
             for term in terms:
                 term.linearize(x, v, t1, scheme.c_x, cv, None, sysm, None, f)
             sysm.finalize_lazy()
@@ -640,7 +642,8 @@ class ImplicitIntegrator(Integrator):
             R = M * (v - scheme.v_hat) - cv * f
             d = self._solve(A, -R, np.zeros_like(v), filt, info, tolerance=max(self.tolerance, NEWTON_FORCING),
                             coupling=coupling)
-            slope = float(np.dot(filt.apply(R.copy().reshape(-1)), d.reshape(-1)))
+            R_free = filt.apply(R.copy().reshape(-1))
+            slope = float(np.dot(R_free, d.reshape(-1)))
             if not np.isfinite(slope) or slope >= 0.0:
                 break
 
@@ -648,18 +651,21 @@ class ImplicitIntegrator(Integrator):
                 return (0.5 * float(np.einsum("ij,ij->", M * (w - scheme.v_hat), w - scheme.v_hat))
                         + forces.energy(every, x0 + cv * w) + cv * forces.dissipation(every, x_lag, w, t1))
 
-            a = 1.0
             cut = bounds.cut(x, d)
-            slope_c = float(np.dot(filt.apply(R.copy().reshape(-1)), cut.reshape(-1))) if cut is not d else 0.0
-            if cut is not d and slope_c < 0.0 and min(phi(v + cut) - phi(v) - 1e-4 * slope_c,
-                                                      phi(v + 0.5 * cut) - phi(v) - 0.5e-4 * slope_c) <= 0.0:
-                d, slope = cut, slope_c          # the cut direction lowers the potential whole: taken as it is
-            elif cut is not d:
-                found = self._contact_direction(A, R, x, d, cut, c, bounds, filt, info, coupling, diag0)
-                if found is None:
-                    break
-                d, slope, a = found
-            a = _armijo(phi, v, d, a, slope)
+            if cut is d:
+                a = _armijo(phi, v, d, 1.0, slope)
+            else:
+                # the cut direction taken as it is where it lowers the potential at full or half length
+                slope_c = float(np.dot(R_free, cut.reshape(-1)))
+                a = _armijo(phi, v, cut, 1.0, slope_c, halvings=2) if slope_c < 0.0 else 0.0
+                if a > 0.0:
+                    d, slope = cut, slope_c
+                else:
+                    found = self._contact_direction(A, R, R_free, x, d, cut, c, bounds, info, coupling, diag0)
+                    if found is None:
+                        break
+                    d, slope, a = found
+                    a = _armijo(phi, v, d, a, slope)
             if a <= 0.0:
                 break
             v = v + a * d
@@ -674,8 +680,8 @@ class ImplicitIntegrator(Integrator):
         x1 = x0 + scheme.beta * v
         return self._finish(x1, v, t1), info
 
-    def _contact_direction(self, A: Any, R: np.ndarray, x: np.ndarray, d: np.ndarray, cut: np.ndarray,
-                           c: Constraints, bounds: "_PathBounds", filt: Filter, info: StepInfo,
+    def _contact_direction(self, A: Any, R: np.ndarray, R_free: np.ndarray, x: np.ndarray, d: np.ndarray,
+                           cut: np.ndarray, c: Constraints, bounds: "_PathBounds", info: StepInfo,
                            coupling: list[Any], contact_free_diag: np.ndarray | None = None
                            ) -> tuple[np.ndarray, float, float] | None:
         """A Newton direction ``d`` some of whose vertices' paths a contact cut (``cut``: :meth:`_PathBounds.cut`),
@@ -691,25 +697,23 @@ class ImplicitIntegrator(Integrator):
         was found. Falls back to the cut direction (when it descends) or to the cut vertices held still."""
         n = self.model.n
         cv = bounds.c_v
-        norm = np.sqrt(np.einsum("ij,ij->i", d, d))
-        ratio = np.sqrt(np.einsum("ij,ij->i", cut, cut)) / np.maximum(norm, 1e-300)
-        moved = norm > 0
-        cutv = np.flatnonzero(moved & (ratio < 1.0 - 1e-9))
-        R_free = filt.apply(R.copy().reshape(-1))
+        ratio = _kept(d, cut)
+        cutv = np.flatnonzero(ratio < 1.0 - 1e-9)
         tol = max(self.tolerance, NEWTON_FORCING)
         if len(cutv) and not bounds.scaled and ARRIVAL_ROUNDS > 0:
             # the cut vertices constrained and the rest solved again, the vertices that direction's paths cut added,
             # until a direction is whole or after ARRIVAL_ROUNDS solves
             pos, move, full = np.zeros((0,), dtype=np.int64), cv * cut, d
-            # each vertex's stiffness (N/m) along any direction, from the system's diagonal block without the
+            # a cut vertex's stiffness (N/m) along any direction, from the system's diagonal block without the
             # contact terms (the inertia and the springs): the smallest eigenvalue, over c_x
             sysm = self.model.system
             blocks = sysm.blocks[sysm.diag_index] if contact_free_diag is None else contact_free_diag
-            stiffness = np.linalg.eigvalsh(blocks)[:, 0] / (cv * cv)
+            stiffness = np.zeros(n)
             nrm_all, mn_all = np.zeros((0, 3)), np.zeros(0)
             fixed, fixed_z = np.zeros(0, dtype=np.int64), np.zeros((0, 3))
             last: np.ndarray | None = None
             for _round in range(ARRIVAL_ROUNDS):
+                stiffness[cutv] = np.linalg.eigvalsh(blocks[cutv])[:, 0] / (cv * cv)
                 idx, nrm, move_n = bounds.normal_targets(x, move, np.setdiff1d(cutv, np.union1d(pos, fixed)),
                                                          cv * full, stiffness)
                 others = np.setdiff1d(cutv, np.union1d(np.union1d(pos, fixed), idx))
@@ -730,9 +734,7 @@ class ImplicitIntegrator(Integrator):
                     return d2, slope2, 1.0
                 if bounds.scaled:
                     break
-                norm2 = np.sqrt(np.einsum("ij,ij->i", d2, d2))
-                r2 = np.sqrt(np.einsum("ij,ij->i", cut2, cut2)) / np.maximum(norm2, 1e-300)
-                new = np.setdiff1d(np.flatnonzero((norm2 > 0) & (r2 < 1.0 - 1e-9)), np.union1d(pos, fixed))
+                new = np.setdiff1d(np.flatnonzero(_kept(d2, cut2) < 1.0 - 1e-9), np.union1d(pos, fixed))
                 last = cut2
                 if not len(new):
                     break
@@ -746,7 +748,7 @@ class ImplicitIntegrator(Integrator):
         slope_t = float(np.dot(R_free, cut.reshape(-1)))
         if np.isfinite(slope_t) and slope_t < 0.0:
             return cut, slope_t, 1.0
-        held = np.flatnonzero(moved & (ratio < (1.0 - 1e-9) * float(ratio.max())))
+        held = np.flatnonzero(ratio < (1.0 - 1e-9) * float(ratio[ratio < np.inf].max(initial=0.0)))
         sub = Filter(n, np.union1d(c.pinned, held))
         d = self._solve(A, -R, np.zeros_like(d), sub, info, tolerance=tol, coupling=coupling)
         slope = float(np.dot(sub.apply(R.copy().reshape(-1)), d.reshape(-1)))
@@ -911,13 +913,21 @@ class _Coupled:
         return y
 
 
-def _armijo(phi: Callable[[np.ndarray], float], v: np.ndarray, d: np.ndarray, a: float, slope: float) -> float:
+def _kept(d: np.ndarray, cut: np.ndarray) -> np.ndarray:
+    """Per vertex, the fraction of its part of the direction ``d`` that ``cut`` keeps (inf where ``d`` is 0)."""
+    norm = np.sqrt(np.einsum("ij,ij->i", d, d))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(norm > 0, np.sqrt(np.einsum("ij,ij->i", cut, cut)) / np.where(norm > 0, norm, 1.0), np.inf)
+
+
+def _armijo(phi: Callable[[np.ndarray], float], v: np.ndarray, d: np.ndarray, a: float, slope: float,
+            halvings: int = LINE_SEARCH_HALVINGS) -> float:
     """Backtracking from ``a`` until ``phi(v + a d) <= phi(v) + 1e-4 a slope``; 0 when it does not within
-    :data:`LINE_SEARCH_HALVINGS`."""
+    ``halvings`` tries."""
     if a <= 0.0:
         return 0.0
     p0 = phi(v)
-    for _ in range(LINE_SEARCH_HALVINGS):
+    for _ in range(halvings):
         if phi(v + a * d) <= p0 + 1e-4 * a * slope:
             return a
         a *= 0.5
