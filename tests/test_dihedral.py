@@ -14,6 +14,7 @@ import copy
 import numpy as np
 import pytest
 from test_forces import _hessian, check_force
+from test_membrane import _hanging as _membrane_hanging
 
 import implicit_cloth as ic
 from implicit_cloth import cloth
@@ -419,15 +420,10 @@ BENDING = {"model": "dihedral", "stiffness": 1e-3, "damping": 1e-5}
 
 
 def _hanging(bending=None, **cloth_keys):
-    c = {"size": [1.0, 1.0], "resolution": [10, 10], "mass": 0.1, "plane": "xy", "center": [0.0, 0.0, 1.0],
-         "pins": ["top_left", "top_right"],
-         "springs": {"structural": {"stiffness": 2000.0, "damping": 0.1}, "shear": {"stiffness": 200.0,
-                                                                                   "damping": 0.05},
-                     "bend": {"stiffness": 5.0, "damping": 0.01}}}
-    c.update(cloth_keys)
+    """The membrane tests' hanging cloth, with ``[cloth.bending]`` = ``bending`` when given."""
     if bending is not None:
-        c["bending"] = bending
-    return {"cloth": c, "effects": {"gravity": [0.0, 0.0, -9.81]}, "simulation": {"duration": 0.5}}
+        cloth_keys["bending"] = bending
+    return _membrane_hanging(**cloth_keys)
 
 
 def test_a_scene_without_the_bending_table_is_unchanged():
