@@ -53,6 +53,9 @@ class ClothBarrier(ConservativeTerm):
         self._collisions: Any = None
         #: Newton iterations whose barrier Hessian was not finite and was left out
         self.skipped = 0
+        #: the last iterate's safe distances and the radius they were gathered in (:meth:`_safe_distances`)
+        self._safe_key: tuple[float, np.ndarray] | None = None
+        self._safe = np.zeros(0)
 
     def _collisions_at(self, x: np.ndarray) -> Any:
         """The pairs within reach at ``x`` (cached for the last ``x``)."""
@@ -132,17 +135,32 @@ class ClothBarrier(ConservativeTerm):
         reach = float(move.max(initial=0.0))
         if reach <= 0.0:
             return dx
-        xf = _f(x)
-        cand = self._ipc.Candidates()
-        # pairs within the offset and INFLATION times the longest move; the safe distances are capped there (a
-        # vertex with nothing near is not cut; a pair beyond it cannot close that distance in one move)
-        inflation = INFLATION * reach + self.xi
-        cand.build(self.mesh, xf, inflation)
-        safe = np.asarray(cand.compute_per_vertex_safe_distances(self.mesh, xf, inflation, self.xi)).reshape(-1)
+        safe = self._safe_distances(x, INFLATION * reach + self.xi)
         s = np.minimum(1.0, SAFE * safe / np.maximum(move, 1e-300))
         if np.all(s >= 1.0):
             return dx
         return shift + rel * s[:, None]
+
+    def _safe_distances(self, x: np.ndarray, inflation: float) -> np.ndarray:
+        """Each vertex's safe distance at ``x`` (N,), m: from the pairs within the offset and ``inflation`` (at
+        least INFLATION times the longest move; a vertex with nothing that near is capped there and not cut, a
+        pair beyond it cannot close that distance in one move). Cached for the last ``x``: a Newton iteration
+        filters many moves from one iterate, each no longer than the cached radius allows (a larger radius
+        gathers more pairs, and caps higher, so the distances stay valid for every shorter move)."""
+        if self._safe_key is not None and self._safe_key[0] >= inflation and np.array_equal(self._safe_key[1], x):
+            return self._safe
+        xf = _f(x)
+        cand = self._ipc.Candidates()
+        cand.build(self.mesh, xf, inflation)
+        safe = np.asarray(cand.compute_per_vertex_safe_distances(self.mesh, xf, inflation, self.xi)).reshape(-1)
+        # The toolkit (1.6) measures two nearly collinear edges (a flat grid's rows and diagonals) by the
+        # distance of their lines, 0 however far apart they are: a vertex on them would get -xi and its move
+        # reversed. No pair is nearer than the least distance of the pairs within the barrier's reach (dhat
+        # past the offset; every pair beyond it is farther), so that is every vertex's floor.
+        floor = max(min(self.distance(x), self.xi + self.dhat) - self.xi, 0.0)
+        self._safe = np.maximum(safe, floor)
+        self._safe_key = (inflation, x.copy())
+        return self._safe
 
 
 def _f(x: np.ndarray) -> np.ndarray:

@@ -161,6 +161,9 @@ class ObstacleBarrier(ConservativeTerm):
         self.edged = [needs_edges(ob.shape, longest, self.xi) for ob in obstacles]
         # an edge's share of its ends' stiffness: each vertex has about six edges, each edge two ends
         self.kappa_edge = (kappa[e[:, 0]] + kappa[e[:, 1]]) / 6.0
+        #: the safe-move filter's geometry of the last iterate (:meth:`_geometry`)
+        self._geo_key: tuple[float, np.ndarray] | None = None
+        self._geo: list = []
 
     # ------------------------------------------------------------------ geometry
     def _local(self, ob: Obstacle, x: np.ndarray, t: float | None = None) -> np.ndarray:
@@ -168,6 +171,30 @@ class ObstacleBarrier(ConservativeTerm):
 
     def _world_normal(self, ob: Obstacle, n: np.ndarray, t: float | None = None) -> np.ndarray:
         return n @ ob.motion.pose(self.t if t is None else t)[1].T
+
+    def _geometry(self, x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, tuple | None]]:
+        """Per obstacle at its pose at ``t``, what the safe-move filter needs of the iterate ``x`` alone (cached
+        for the last ``x``: a Newton iteration filters many moves from one iterate): the free vertices' gaps and
+        local positions and, where edges are felt, the edges' local ends, their ends' least gap and half
+        length."""
+        key = self._geo_key
+        if key is not None and key[0] == self.t and np.array_equal(key[1], x):
+            return self._geo
+        out = []
+        e = self.edges
+        for ob, edged in zip(self.obstacles, self.edged):
+            loc = self._local(ob, x)
+            p0 = loc[self.free]
+            g0 = ob.shape.closest(p0)[0] - self.xi      # as gaps() has it
+            edge_geo = None
+            if edged and len(e):
+                a0, a1 = loc[e[:, 0]], loc[e[:, 1]]
+                ends = np.minimum(ob.shape.distance(a0), ob.shape.distance(a1)) - self.xi
+                half = 0.5 * np.sqrt(np.einsum("ij,ij->i", a1 - a0, a1 - a0))
+                edge_geo = (a0, a1, ends, half)
+            out.append((g0, p0, edge_geo))
+        self._geo_key, self._geo = (self.t, x.copy()), out
+        return out
 
     def at(self, x0: np.ndarray, t0: float, t1: float) -> "ObstacleBarrier":
         """This barrier for the step from ``x0`` at ``t0`` to ``t1``: its potential against the obstacles' poses
@@ -293,8 +320,8 @@ class ObstacleBarrier(ConservativeTerm):
         s = np.ones(len(x))
         p0w, dw = x[self.free], dx[self.free]
         moves = np.any(dw != 0.0, axis=1)          # a vertex that does not move crosses nothing
-        for (g0, _), ob in zip(self.gaps(x), self.obstacles):
-            p0 = self._local(ob, p0w)
+        geo = self._geometry(x)
+        for (g0, p0, _), ob in zip(geo, self.obstacles):
             p1 = self._local(ob, p0w + dw)
             # phi must stay above this along the path: (1 - SAFE) of the gap, of the barrier's reach for a vertex
             # farther (one arriving from afar reaches the barrier's zone in one move)
@@ -367,13 +394,11 @@ class ObstacleBarrier(ConservativeTerm):
         moving = speed > 0
         bad_e: list[np.ndarray] = []
         bad_f: list[np.ndarray] = []
-        for ob, edged in zip(self.obstacles, self.edged):
+        for ob, edged, (_, _, edge_geo) in zip(self.obstacles, self.edged, self._geometry(x)):
             if not edged:
                 continue
-            loc = self._local(ob, x)
-            a0, a1 = loc[e[:, 0]], loc[e[:, 1]]
-            ends = np.minimum(ob.shape.distance(a0), ob.shape.distance(a1)) - self.xi
-            half = 0.5 * np.sqrt(np.einsum("ij,ij->i", a1 - a0, a1 - a0))
+            assert edge_geo is not None
+            a0, a1, ends, half = edge_geo
             # only edges the move could bring near: gap lower bound minus the move below (1 - SAFE) of a gap
             cand = np.flatnonzero(moving & (ends - half - speed < self.dhat))
             if not len(cand):
