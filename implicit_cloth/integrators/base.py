@@ -652,18 +652,7 @@ class ImplicitIntegrator(Integrator):
             if not np.isfinite(slope) or slope >= 0.0:
                 break
 
-            f_lag = None
-            if unpotential:
-                f_lag = np.zeros_like(v)
-                for e in unpotential:
-                    e.force(x, v, t1, f_lag)
-
-            def phi(w: np.ndarray, x_lag: np.ndarray = x, v_lag: np.ndarray = v, f_lag: Any = f_lag) -> float:
-                p = (0.5 * float(np.einsum("ij,ij->", M * (w - scheme.v_hat), w - scheme.v_hat))
-                     + forces.energy(every, x0 + cv * w) + cv * forces.dissipation(every, x_lag, w, t1))
-                if f_lag is not None:
-                    p -= cv * float(np.einsum("ij,ij->", f_lag, w - v_lag))
-                return p
+            phi = _step_potential(M, scheme.v_hat, every, x0, cv, t1, x, v, unpotential)
 
             cut = bounds.cut(x, d)
             if cut is d:
@@ -932,6 +921,27 @@ def _kept(d: np.ndarray, cut: np.ndarray) -> np.ndarray:
     norm = np.sqrt(np.einsum("ij,ij->i", d, d))
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(norm > 0, np.sqrt(np.einsum("ij,ij->i", cut, cut)) / np.where(norm > 0, norm, 1.0), np.inf)
+
+
+def _step_potential(M: np.ndarray, v_hat: np.ndarray, every: list[Any], x0: np.ndarray, cv: float, t1: float,
+                    x_lag: np.ndarray, v_lag: np.ndarray, lagged: list[Any]) -> Callable[[np.ndarray], float]:
+    """:meth:`ImplicitIntegrator.minimize`'s ``Phi(w) = |w - v_hat|_M^2 / 2 + sum_f U_f(x0 + c_v w) + c_v sum_f
+    D_f(x_lag, w, t1)``, less ``c_v F(x_lag, v_lag) . (w - v_lag)`` for the ``lagged`` forces (those with neither
+    potential: their work lagged at the iterate ``v_lag``, so that ``Phi``'s slope there is the residual's)."""
+    f_lag = None
+    if lagged:
+        f_lag = np.zeros_like(v_lag)
+        for e in lagged:
+            e.force(x_lag, v_lag, t1, f_lag)
+
+    def phi(w: np.ndarray) -> float:
+        p = (0.5 * float(np.einsum("ij,ij->", M * (w - v_hat), w - v_hat))
+             + forces.energy(every, x0 + cv * w) + cv * forces.dissipation(every, x_lag, w, t1))
+        if f_lag is not None:
+            p -= cv * float(np.einsum("ij,ij->", f_lag, w - v_lag))
+        return p
+
+    return phi
 
 
 def _armijo(phi: Callable[[np.ndarray], float], v: np.ndarray, d: np.ndarray, a: float, slope: float,
