@@ -16,7 +16,8 @@ over whatever forces the model has, through this interface (after Bullet's defor
 newton's solvers): nothing names ``gravity`` or ``springs``. A term is one class with
 
 ``name`` (str), ``conservative`` and ``dissipative`` (bool: which parts it has; a spring set with damping has
-both), ``elastic`` (bool: its energy is stored in the cloth, >= 0),
+both; a force with neither, the aerodynamics, has no potential at all: the Newton line search of ``minimize``
+takes its work lagged at the iterate), ``elastic`` (bool: its energy is stored in the cloth, >= 0),
 
 ``energy(x)``
     ``U(x)``, J (0 without a conservative part).

@@ -490,7 +490,7 @@ def _effects(d: Any) -> dict[str, Any]:
             entry = EFFECTS[name]
             out[name] = entry.load("validate")(f"effects.{name}", d[name])
             needs = entry.meta.get("requires")
-            if needs and needs[0] not in out:
+            if needs and not any(k in out for k in entry.meta.get("requires_any", (needs[0],))):
                 raise SceneError(f"effects.{needs[0]}", f"missing ({needs[1]})")
     return out
 

@@ -41,7 +41,7 @@ def test_validation_reads_the_registries_each_component_fills():
     assert PRECONDITIONERS.names() == ("auto", "multigrid", "block_jacobi", "multigrid_smoothed")
     assert PRECONDITIONERS.where(default=True) == ("auto",)
     assert OBSTACLE_SHAPES.names() == ("sphere", "box", "cone", "capsule", "plane", "mesh")
-    assert EFFECTS.names() == ("gravity", "drag", "wind")
+    assert EFFECTS.names() == ("gravity", "drag", "aerodynamics", "wind")
     with pytest.raises(SceneError, match=r"^simulation\.integrator: must be one of forward_euler, .*bdf2 "
                                          r"\(did you mean 'bdf2'\?\), got 'bfd2'$"):
         ic.Scene.from_dict({"cloth": CLOTH, "simulation": {"integrator": "bfd2"}})

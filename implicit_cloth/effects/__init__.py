@@ -21,13 +21,14 @@ from ..forces import Force
 
 # The [effects] table, in evaluation order. Each entry's module checks its own value (``validate(path,
 # value)``), builds its force term (``build``, when ``builds``) and is imported only when a scene declares
-# it; ``requires`` names the entry it acts through and why (wind has no force of its own: drag acts
-# relative to it, and builds it).
+# it; ``requires`` names the entry it acts through and why, ``requires_any`` the entries any one of which will
+# do (wind has no force of its own: drag or the aerodynamics act relative to it, and build it).
 EFFECTS.register("gravity", module="implicit_cloth.effects.gravity", builds=True)
 EFFECTS.register("drag", module="implicit_cloth.effects.drag", builds=True)
+EFFECTS.register("aerodynamics", module="implicit_cloth.effects.aerodynamics", builds=True)
 EFFECTS.register("wind", module="implicit_cloth.effects.wind", builds=False, requires=(
-    "drag", "wind acts through air drag; set effects.drag, the drag coefficient in N*s/m^3, for effects.wind "
-            "to have an effect"))
+    "drag", "wind acts through air drag; set effects.drag, the drag coefficient in N*s/m^3, or "
+            "effects.aerodynamics, for effects.wind to have an effect"), requires_any=("drag", "aerodynamics"))
 #: the springs come from the [cloth.springs] tables, not [effects]; built after the [effects] entries
 SPRINGS_MODULE = "implicit_cloth.effects.springs"
 

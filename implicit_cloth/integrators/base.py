@@ -605,7 +605,9 @@ class ImplicitIntegrator(Integrator):
         :data:`MINIMIZE_TOLERANCE` of the step's velocity change or :data:`MINIMIZE_FLOOR`, when ``done(x1, v,
         decrement)`` says so (the caller's test of the end state and of Newton's predicted decrease of ``Phi``,
         half the slope: the simulator's energy balance), or after ``iterations``. Every iterate lowers ``Phi``, in
-        which contact is conservative and friction dissipative; backward Euler on a potential that is not convex
+        which contact is conservative and friction dissipative (a force with neither potential, the aerodynamics,
+        enters ``Phi`` as its work lagged at the iterate, ``-c_v F(x_k, v_k) . (v - v_k)``: its slope is the
+        residual's); backward Euler on a potential that is not convex
         (compressed springs, a barrier over a curved surface) can still gain energy, which the step's energy
         balance checks.
         """
@@ -628,6 +630,9 @@ class ImplicitIntegrator(Integrator):
         floor = MINIMIZE_FLOOR * np.sqrt(float(np.sum(M)))
         sysm = self.model.system
         diag0 = np.empty((self.model.n, 3, 3)) if terms else None   # the diagonal blocks without the contacts'
+        # forces with neither a potential nor a dissipation potential (the aerodynamics): in Phi as their work
+        # lagged at the iterate, -c_v F(x_k, v_k) . (w - v_k), so that Phi's slope there is the residual's
+        unpotential = [e for e in self.model.effects if not e.conservative and not e.dissipative]
         for _ in range(iterations):
             x = x0 + cv * v
             t0 = time.perf_counter()
@@ -647,9 +652,7 @@ class ImplicitIntegrator(Integrator):
             if not np.isfinite(slope) or slope >= 0.0:
                 break
 
-            def phi(w: np.ndarray, x_lag: np.ndarray = x) -> float:
-                return (0.5 * float(np.einsum("ij,ij->", M * (w - scheme.v_hat), w - scheme.v_hat))
-                        + forces.energy(every, x0 + cv * w) + cv * forces.dissipation(every, x_lag, w, t1))
+            phi = _step_potential(M, scheme.v_hat, every, x0, cv, t1, x, v, unpotential)
 
             cut = bounds.cut(x, d)
             if cut is d:
@@ -918,6 +921,27 @@ def _kept(d: np.ndarray, cut: np.ndarray) -> np.ndarray:
     norm = np.sqrt(np.einsum("ij,ij->i", d, d))
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(norm > 0, np.sqrt(np.einsum("ij,ij->i", cut, cut)) / np.where(norm > 0, norm, 1.0), np.inf)
+
+
+def _step_potential(M: np.ndarray, v_hat: np.ndarray, every: list[Any], x0: np.ndarray, cv: float, t1: float,
+                    x_lag: np.ndarray, v_lag: np.ndarray, lagged: list[Any]) -> Callable[[np.ndarray], float]:
+    """:meth:`ImplicitIntegrator.minimize`'s ``Phi(w) = |w - v_hat|_M^2 / 2 + sum_f U_f(x0 + c_v w) + c_v sum_f
+    D_f(x_lag, w, t1)``, less ``c_v F(x_lag, v_lag) . (w - v_lag)`` for the ``lagged`` forces (those with neither
+    potential: their work lagged at the iterate ``v_lag``, so that ``Phi``'s slope there is the residual's)."""
+    f_lag = None
+    if lagged:
+        f_lag = np.zeros_like(v_lag)
+        for e in lagged:
+            e.force(x_lag, v_lag, t1, f_lag)
+
+    def phi(w: np.ndarray) -> float:
+        p = (0.5 * float(np.einsum("ij,ij->", M * (w - v_hat), w - v_hat))
+             + forces.energy(every, x0 + cv * w) + cv * forces.dissipation(every, x_lag, w, t1))
+        if f_lag is not None:
+            p -= cv * float(np.einsum("ij,ij->", f_lag, w - v_lag))
+        return p
+
+    return phi
 
 
 def _armijo(phi: Callable[[np.ndarray], float], v: np.ndarray, d: np.ndarray, a: float, slope: float,
