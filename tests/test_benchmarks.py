@@ -119,15 +119,15 @@ def test_cloth_models_quick_via_cli(tmp_path):
             assert {"membrane", "bending"} <= set(r["effects"]) and not {"structural", "bend"} & set(r["effects"])
         else:
             assert {"structural", "shear", "bend"} <= set(r["effects"]) and "membrane" not in r["effects"]
-        if r["scene"] == "crumple":
-            assert r["crossings"] == 0 and r["floor_gap_mm"] > 0 and r["rod_gap_mm"] > 0
-        if r["scene"] == "drape":
-            assert r["sphere_gap_mm"] > 0
+        if r["scene"] == "crumple":      # landed: on the floor, kept the thickness (5 mm) off it by the rounds
+            assert r["crossings"] == 0 and 4.0 < r["floor_gap_mm"] < 6.0 and r["rod_gap_mm"] > 4.0
+        if r["scene"] == "drape":        # on the sphere
+            assert 4.0 < r["sphere_gap_mm"] < 6.0
     assert sorted((r["n"], r["model"]) for r in res["sag"]) == [
         (n, m) for n in (6, 8, 10) for m in ("springs", "triangles")]
     assert all(len(r["drop"]) == len(r["times"]) and r["drop"][-1] > 0 for r in res["sag"])
     md = (tmp_path / "cloth_models.md").read_text()
-    assert "| crumple (0.1 s) | 8² | triangles + dihedral |" in md and "## The hanging cloth's sag" in md
+    assert "| crumple (0.4 s) | 8² | triangles + dihedral |" in md and "## The hanging cloth's sag" in md
 
 
 def test_contact_energy_quick_via_cli(tmp_path):
