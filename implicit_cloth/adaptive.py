@@ -8,7 +8,8 @@ A nominal step of ``dt`` (``simulation.dt``) is taken as substeps of
 * the linear solver did not converge (implicit methods; ``retry_unconverged``);
 * it leaves a spring stretched beyond ``max_strain`` (relative stretch
   ``(l - L0) / L0``) that it stretched further (a spring already beyond the
-  bound and relaxing does not fail the step);
+  bound and relaxing does not fail the step); with a membrane, likewise a
+  triangle whose largest principal strain is beyond it;
 * it breaks the energy balance (:mod:`implicit_cloth.diagnostics`): it raises
   the total energy (kinetic + gravity + springs) by more than the work of the
   moving pins, the wind and the obstacles over it plus
@@ -146,8 +147,8 @@ class StepController:
         failed: dict[str, float] = {}
         if self.retry_unconverged and not info.converged:
             failed["solver"] = info.residual
-        eps0 = self.measures(old)[3]
-        eps1 = self.measures(new)[3]
+        eps0 = self.measures.strains(old)
+        eps1 = self.measures.strains(new)
         if eps1 is not None:
             over = (eps1 > self.max_strain) & (eps1 > eps0)
             if np.any(over):
@@ -266,5 +267,5 @@ class StepController:
 
         The level (current step) and the counters stay.
         """
-        self.measures._cache = []
+        self.measures.forget()
         self.suspended.clear()

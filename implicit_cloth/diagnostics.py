@@ -64,8 +64,9 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray, t: float | None = None) 
         sum), ``total``, and ``max_strain``: the largest ``(l - L0) / L0`` over
         the structural springs (all springs if the cloth has no structural
         ones; 0 without springs). With a membrane (:mod:`implicit_cloth.effects.membrane`) its energy is
-        counted with the springs' and ``max_strain`` is the largest of its threads' strains ``|w| - 1`` and
-        the structural springs' (the bend springs' are then left out). The dihedral bending's energy
+        counted with the springs' and ``max_strain`` is the largest of its triangles' principal strains
+        (:meth:`~implicit_cloth.effects.membrane.Membrane.principal_strains`: the largest relative stretch in
+        any direction) and the structural springs' (the bend springs' are then left out). The dihedral bending's energy
         (:mod:`implicit_cloth.effects.dihedral`) is counted with the springs' too, and so are the soft pins'
         springs' (:mod:`implicit_cloth.effects.pin_springs`, at time ``t`` when given: their targets move).
     """
@@ -81,9 +82,9 @@ def measure(model: Model, x: np.ndarray, v: np.ndarray, t: float | None = None) 
         if sl.stop > sl.start:
             eps = s.strain(x)[sl]
             strain = float(eps.max())
-    if membrane is not None:   # its stored energy with the springs', its threads' strain with the structural
+    if membrane is not None:   # its stored energy with the springs', its principal strain with the structural
         spr += pe["membrane"]
-        strain = max(strain, float(cast(Any, membrane).strains(x)[:, :2].max()))
+        strain = max(strain, float(cast(Any, membrane).principal_strains(x).max()))
     spr += pe.get("bending", 0.0)   # the dihedral bending's (implicit_cloth.effects.dihedral) with the springs'
     if "pin_springs" in pe:          # soft pins' springs, at the state's time ``t`` when given (moving targets)
         soft = next(e for e in model.effects if e.name == "pin_springs")
@@ -119,12 +120,14 @@ def energy_scale(model: Model, x: np.ndarray, v: np.ndarray, duration: float | N
 
 
 class StepMeasures:
-    """Energies, spring strains and external power of states, for the energy balance of steps.
+    """Energies, strains and external power of states, for the energy balance and the strain bound of steps.
 
     Through the effects' protocol: the stored (``elastic``) energy of the springs and their strains from one
     evaluation of the spring lengths, the other conservative effects' potentials (gravity), and the power
-    the effects bring in from outside (``power``: the wind) with the moving pins'. The last two states
-    measured are cached (a step's end is the next step's start).
+    the effects bring in from outside (``power``: the wind) with the moving pins'. :meth:`strains` adds the
+    membrane's triangles' principal strains to the springs' (measured only where a strain is asked for: the
+    barrier's Newton iterates ask for the balance alone). The last two states measured are cached (a step's
+    end is the next step's start).
     """
 
     def __init__(self, model: Model) -> None:
@@ -136,6 +139,29 @@ class StepMeasures:
         self._fields = [e for e in model.effects if e.conservative and not e.elastic]
         self._elastic = [e for e in model.effects if e.elastic and e is not model.springs]
         self._cache: list[tuple[Any, tuple[float, float, float, np.ndarray | None, float]]] = []
+        self._membrane: Any = next((e for e in model.effects if e.name == "membrane"), None)
+        self._strain_cache: list[tuple[Any, np.ndarray | None]] = []
+
+    def forget(self) -> None:
+        """Drop the cached measures (after the state is assigned)."""
+        self._cache = []
+        self._strain_cache = []
+
+    def strains(self, s: Any) -> np.ndarray | None:
+        """The strains the strain bound is checked on: the springs' ``(l - L0) / L0`` (as ``self(s)[3]``), then
+        the membrane's triangles' largest principal strains (:meth:`~implicit_cloth.effects.membrane.Membrane.
+        principal_strains`), in a fixed order so two states' arrays compare entry by entry; None when the cloth
+        has neither."""
+        spring = self(s)[3]
+        if self._membrane is None:
+            return spring
+        for state, got in self._strain_cache:
+            if state is s:
+                return got
+        tri = self._membrane.principal_strains(s.x)
+        out = tri if spring is None or not len(spring) else np.concatenate([spring, tri])
+        self._strain_cache = self._strain_cache[-1:] + [(s, out)]
+        return out
 
     def power(self, s: Any) -> float:
         """Power of the pins and of outside sources through the effects (the wind) on the cloth, W."""

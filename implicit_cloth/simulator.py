@@ -412,17 +412,18 @@ class Simulator:
         return info
 
     def _check_strain(self, old: State, s: State) -> None:
-        """Record a step that left a spring beyond the scene's strain bound (strain limiting's ``max_strain`` if
-        declared, else adaptive's) longer than it found it (a spring relaxing from a stretch it was given is not
-        the step's doing)."""
-        strain = self.measures(s)[3]
+        """Record a step that left a spring or a membrane triangle beyond the scene's strain bound (strain
+        limiting's ``max_strain`` if declared, else adaptive's) longer than it found it (a spring relaxing from a
+        stretch it was given is not the step's doing). A triangle's strain is its largest principal strain
+        (:meth:`~implicit_cloth.diagnostics.StepMeasures.strains`)."""
+        strain = self.measures.strains(s)
         if strain is None or not len(strain):
             return
         top = float(strain.max())
         self.health.max_strain = max(self.health.max_strain, top)
         bound = self.strain_bound * (1.0 + STRAIN_TOLERANCE) + STRAIN_TOLERANCE
         if top > bound:
-            before = self.measures(old)[3]
+            before = self.measures.strains(old)
             grew = (strain > bound) & (strain > before)
             if np.any(grew):
                 self.health.add("strain", s.t, float(strain[grew].max()))

@@ -101,6 +101,35 @@ def test_self_collision_quick_via_cli(tmp_path):
     assert "| 14² |" in (tmp_path / "self_collision.md").read_text()
 
 
+def test_cloth_models_quick_via_cli(tmp_path):
+    """``bench cloth_models --quick``: both models on the three scenes (the springs without a membrane, the
+    triangles with the membrane and the dihedral bending and no spring), each run ok, the crumple's judges (no
+    crossing) and the drape's (outside the sphere) filled in, and the sag table at three sizes per model."""
+    from implicit_cloth.cli import main
+
+    assert main(["bench", "cloth_models", "--quick", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "cloth_models.json").read_text())
+    assert res["benchmark"] == "cloth_models" and res["quick"] is True
+    assert [(r["scene"], r["model"]) for r in res["rows"]] == [
+        (s, m) for s in ("hanging", "drape", "crumple") for m in ("springs", "triangles")]
+    for r in res["rows"]:
+        assert r["ms_step"] > 0 and r["cg_per_step"] >= 1 and r["status"] == "ok", r
+        assert 0 <= r["principal_strain"] < 0.5 and r["report_max_strain"] >= 0
+        if r["model"] == "triangles":
+            assert {"membrane", "bending"} <= set(r["effects"]) and not {"structural", "bend"} & set(r["effects"])
+        else:
+            assert {"structural", "shear", "bend"} <= set(r["effects"]) and "membrane" not in r["effects"]
+        if r["scene"] == "crumple":      # landed: on the floor, kept the thickness (5 mm) off it by the rounds
+            assert r["crossings"] == 0 and 4.0 < r["floor_gap_mm"] < 6.0 and r["rod_gap_mm"] > 4.0
+        if r["scene"] == "drape":        # on the sphere
+            assert 4.0 < r["sphere_gap_mm"] < 6.0
+    assert sorted((r["n"], r["model"]) for r in res["sag"]) == [
+        (n, m) for n in (6, 8, 10) for m in ("springs", "triangles")]
+    assert all(len(r["drop"]) == len(r["times"]) and r["drop"][-1] > 0 for r in res["sag"])
+    md = (tmp_path / "cloth_models.md").read_text()
+    assert "| crumple (0.4 s) | 8² | triangles + dihedral |" in md and "## The hanging cloth's sag" in md
+
+
 def test_contact_energy_quick_via_cli(tmp_path):
     """``implicit-cloth bench contact --quick``: every row judged from its states (energy rise, strain, end state),
     the goals recorded; the outputs are well formed. Goals are read off the table, not asserted here (the

@@ -38,7 +38,8 @@ def _scene(name: str, **simulation) -> dict:
 
 def test_every_example_is_checked_here():
     assert set(SCENES) == {"cloth_on_cone", "crumple", "drape_sphere", "five_sheets", "flag", "hanging",
-                           "keyframed_sphere", "membrane_drape", "moving_sphere", "stiff_large_step", "towel_lift",
+                           "keyframed_sphere", "membrane_drape", "moving_sphere", "stiff_large_step", "towel_fold",
+                           "towel_lift",
                            "two_sheets", "wind"}
 
 
@@ -58,7 +59,7 @@ def test_references_point_at_sections_that_exist(name):
 def test_every_example_runs_a_few_frames(name):
     data = _scene(name)
     dt = data["simulation"]["dt"]
-    slow = name in ("crumple", "two_sheets", "five_sheets")     # self-collision: a few steps only
+    slow = name in ("crumple", "two_sheets", "five_sheets", "towel_fold")     # self-collision: a few steps only
     sim = ic.Simulator(data)
     traj = sim.run(duration=(3 if slow else 10) * dt)
     assert traj.report["status"] in ("ok", "warning")
@@ -283,3 +284,43 @@ def test_towel_lift_corners_rise_turn_and_hold():
     np.testing.assert_allclose(sim.model.pin_positions(2.0), turned, rtol=0, atol=1e-12)
     np.testing.assert_allclose(sim.model.pin_positions(2.5), turned, rtol=0, atol=1e-12)
     assert len(p) == 2 and [e.name for e in sim.model.effects][-1] == "pin_springs"
+
+
+@pytest.mark.slow
+def test_towel_fold_folds_in_two_without_crossing():
+    """The whole run (about 25 s here): no edge through a triangle at any kept frame (test_self_collision's
+    judge), status ok (energy balance and the strain bound on the membrane's triangles), and folded in half at
+    the end: the lifted half lies over the other, its edge over the other's edge 2.5 to 5 mm (the barrier's
+    half and whole thickness) above the lower layer wherever it lies over it, and the lower half still flat on
+    the floor."""
+    from scipy.interpolate import LinearNDInterpolator
+    from test_self_collision import crossings
+
+    pytest.importorskip("ipctk")
+    _claim("towel_fold", "its right edge, held by keyframed pins, lifts, travels over the fold line and comes down "
+                         "onto the left edge, so the towel ends folded in half on itself")
+    _claim("towel_fold", "the 24 vertices i = 23 of each row j: 24 j + 23")
+    d = _scene("towel_fold")
+    c = d["cloth"]
+    nx, ny = c["resolution"]
+    assert (nx, ny) == (24, 24) and c["size"] == [0.5, 0.5] and c["material"] == "denim"
+    assert d["collision"]["method"] == "barrier" and d["collision"]["self_collision"]
+    sim = ic.Simulator(d)
+    assert [e.name for e in sim.model.effects][-2:] == ["membrane", "bending"] and sim.model.springs is None
+    edge = np.arange(ny) * nx + nx - 1
+    assert np.array_equal(np.sort(sim.model.pinned), edge)
+    traj = sim.run()
+    r = traj.report
+    assert r["status"] == "ok", r["reason"]
+    assert max(crossings(x, traj.faces) for x in traj.positions) == 0
+    x = traj.positions[-1].reshape(ny, nx, 3)
+    lower, upper = x[:, : nx // 2].reshape(-1, 3), x[:, nx // 2:].reshape(-1, 3)
+    th = d["collision"]["thickness"]
+    assert lower[:, 2].max() < th and lower[:, 0].min() == pytest.approx(-0.25, abs=0.01)    # flat, in place
+    assert upper[:, 0].max() < 0.0 and upper[:, 0].min() > -0.26                               # over the left half
+    np.testing.assert_allclose(x[:, -1, 0], -0.25, atol=1e-9)                                  # the edge over the edge
+    z_low = LinearNDInterpolator(lower[:, :2], lower[:, 2])(upper[:, :2])
+    over = np.isfinite(z_low)
+    assert over.sum() > 0.8 * len(upper)
+    gap = upper[over, 2] - z_low[over]
+    assert gap.min() > 0.5 * th - 1e-4 and np.median(gap) < 1.5 * th

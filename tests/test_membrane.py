@@ -549,3 +549,82 @@ def test_a_run_report_scene_with_the_membrane_loads_back_as_it_ran():
     del scene["cloth"]["springs"]
     data = ic.Scene(scene).data
     assert ic.Scene(copy.deepcopy(data)).data == data
+
+
+# --------------------------------------------------------------------------- the run's strain measures
+def test_principal_strain_is_the_largest_stretch_in_any_direction():
+    """``principal_strains`` is the largest singular value of the deformation gradient minus 1 (a uniform
+    deformation ``x = A X`` of the flat sheet: ``F = A[:, :2]``), at least the threads' and the edges' strains;
+    a stretch along the bias (the diagonal), which the threads see partly as shear, is caught whole."""
+    mem, geo = _membrane()
+    rng = np.random.default_rng(3)
+    X = geo.positions
+    for _ in range(5):
+        A = np.eye(3) + 0.4 * rng.standard_normal((3, 3))
+        x = X @ A.T
+        p = mem.principal_strains(x)
+        top = np.linalg.svd(A[:, :2], compute_uv=False)[0] - 1.0
+        assert np.allclose(p, top, atol=1e-12)
+        assert np.all(p >= mem.strains(x)[:, :2].max(axis=1) - 1e-12)
+        E = x[geo.faces] - x[np.roll(geo.faces, 1, axis=1)]
+        E0 = X[geo.faces] - X[np.roll(geo.faces, 1, axis=1)]
+        edge = np.linalg.norm(E, axis=2) / np.linalg.norm(E0, axis=2) - 1.0
+        assert np.all(p >= edge.max(axis=1) - 1e-12)
+    d = np.array([1.0, 1.0, 0.0]) / math.sqrt(2.0)
+    x = X @ (np.eye(3) + 0.5 * np.outer(d, d)).T           # 50 % along the bias
+    assert np.allclose(mem.principal_strains(x), 0.5)
+    assert mem.strains(x)[:, :2].max() < 0.3                 # the threads: sqrt(1.25^2 + 0.25^2) - 1 = 0.275
+    assert np.abs(mem.principal_strains(X)).max() < 1e-12
+
+
+def _torn(adaptive=True):
+    """An 8² membrane cloth with dihedral bending (no spring at all), its left edge pinned and its right edge
+    carried 2 m away in 0.5 s: torn to three times its width, far beyond any cloth."""
+    ids = np.arange(64).reshape(8, 8)
+    c = {"size": [1.0, 1.0], "resolution": [8, 8], "mass": 0.1, "plane": "xy", "center": [0.0, 0.0, 1.0],
+         "membrane": copy.deepcopy(MEMBRANE), "bending": {"model": "dihedral", "stiffness": 1e-3, "damping": 1e-5},
+         "pins": [{"vertices": ids[:, 0].tolist()},
+                  {"vertices": ids[:, -1].tolist(),
+                   "keyframes": [{"time": 0.0}, {"time": 0.5, "translation": [2.0, 0.0, 0.0]}]}]}
+    return {"cloth": c, "effects": {"gravity": [0.0, 0.0, -9.81]},
+            "simulation": {"duration": 0.6, "adaptive": {"enabled": adaptive}}}
+
+
+@pytest.mark.parametrize("adaptive", [True, False], ids=["adaptive", "fixed"])
+def test_a_torn_membrane_is_a_strain_warning(adaptive):
+    """With the membrane (and no spring) the report's strain is the triangles' largest principal strain: the
+    kept frames' ``max_strain`` reaches the tear (~2), and the steps that stretched a triangle beyond the strain
+    bound (adaptive's ``max_strain``, 1) make the status a ``strain`` warning, with adaptive stepping (its
+    strain criterion, forced at the smallest step) and without (the step check)."""
+    sim = ic.Simulator(_torn(adaptive))
+    assert sim.model.springs is None
+    r = sim.run().report
+    assert r["n_springs"] == {} and max(r["frames"]["max_strain"]) > 1.9
+    assert r["status"] == "warning", r["health"]
+    strain = [h for h in r["health"] if h["criterion"] == "strain"]
+    assert strain and strain[0]["worst"] > 1.9 and 0.2 < strain[0]["first_time"] < 0.35
+    x = sim.state.x
+    assert r["frames"]["max_strain"][-1] == pytest.approx(
+        float(next(e for e in sim.model.effects if e.name == "membrane").principal_strains(x).max()), rel=1e-9)
+
+
+def test_a_membrane_drape_is_ok_with_its_strain_measured():
+    """The membrane drape (denim, 16², dihedral bending instead of the bend springs, its first 0.8 s): status
+    ok. Its threads barely stretch (denim's 6330 N/m warp and weft), but where it wraps the sphere it shears
+    (denim's shear, 122.5 N/m, is 50 times softer): ``C_s`` up to 0.2 stretches the bias by up to 10 %
+    (``sqrt(1 + C_s) - 1`` for unit threads), and that is the largest principal strain the report gives, well
+    within the bound."""
+    data = ic.load_scene("examples/membrane_drape.toml").source
+    c = data["cloth"]
+    c["resolution"] = [16, 16]
+    c["bending"] = {"model": "dihedral"}
+    data["simulation"]["duration"] = 0.8
+    sim = ic.Simulator(data)
+    assert sim.model.springs is None
+    traj = sim.run()
+    r = traj.report
+    assert r["status"] == "ok", r["health"]
+    assert r["collision"]["contacts"] > 0
+    assert 0.01 < max(r["frames"]["max_strain"]) < 0.15
+    mem = next(e for e in sim.model.effects if e.name == "membrane")
+    assert max(float(mem.strains(x)[:, :2].max()) for x in traj.positions) < 0.01      # the threads'

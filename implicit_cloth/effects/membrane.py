@@ -162,6 +162,19 @@ class Membrane:
         lu, lv = np.linalg.norm(wu, axis=1), np.linalg.norm(wv, axis=1)
         return np.stack([lu - 1.0, lv - 1.0, np.einsum("ij,ij->i", wu, wv)], axis=1)
 
+    def principal_strains(self, x: np.ndarray) -> np.ndarray:
+        """The largest principal strain of each triangle, (T,): ``sqrt(lambda_max(F^T F)) - 1`` with ``F = [w_u
+        w_v]`` (3 x 2) its deformation gradient, i.e. the largest relative stretch ``(l - L0) / L0`` of any
+        segment drawn in the triangle, whatever its direction. It is at least each thread's ``C_u``, ``C_v`` and
+        each edge's strain, and catches a stretch along a diagonal that the threads see only as shear (a
+        sheet pulled along its bias). The run's strain measures read it (``max_strain``, the strain bound)."""
+        wu, wv = self.deformation(x)
+        a = np.einsum("ij,ij->i", wu, wu)
+        c = np.einsum("ij,ij->i", wv, wv)
+        b = np.einsum("ij,ij->i", wu, wv)
+        half = 0.5 * (a - c)
+        return np.sqrt(0.5 * (a + c) + np.sqrt(half * half + b * b)) - 1.0
+
     def _frame(self, x: np.ndarray):
         wu, wv = self.deformation(x)
         lu = np.sqrt(np.einsum("ij,ij->i", wu, wu))
