@@ -332,6 +332,9 @@ class Simulator:
         terms = col.terms(contacts, state.x, state.t, h) if col is not None else []
         if cloth is not None:
             terms.append(cloth.term(state.x))
+            friction = cloth.friction(terms[-1], state.x)
+            if friction is not None:
+                terms.append(friction)
         t_detect = time.perf_counter() - t0
         share = NEWTON_ENERGY_SHARE * self._energy_growth
 

@@ -418,3 +418,48 @@ def test_a_cloth_pressed_harder_than_its_barrier_holds_stays_at_a_representable_
     gap = traj.positions[..., 2] - TH / 2
     assert gap.min() >= 0.99 * GAP_FLOOR * TH / 2
     assert traj.report["status"] == "ok", traj.report["health"]
+
+
+def _slide(mu, v0=0.1, steps=40, settle=30):
+    """A 10² sheet resting on another on a rough floor (settled for ``settle`` steps), then given ``v0`` m/s
+    along x and run ``steps`` more: the barrier method, self-friction ``mu``. The states after the push."""
+    def sheet(z):
+        return {"size": [0.3, 0.3], "resolution": [10, 10], "mass": 0.05, "center": [0.0, 0.0, z], "plane": "xy",
+                "springs": {"structural": {"stiffness": 300.0, "damping": 0.05},
+                            "shear": {"stiffness": 30.0, "damping": 0.01},
+                            "bend": {"stiffness": 0.5, "damping": 0.001}}}
+    scene = {"simulation": {"integrator": "backward_euler", "dt": 1 / 60, "duration": (settle + steps) / 60,
+                            "frame_rate": 60},
+             "cloth": [sheet(0.75 * TH), sheet(1.6 * TH)],
+             "effects": {"gravity": [0.0, 0.0, -9.81]},
+             "obstacles": [{"shape": "plane", "friction": 1.0}],
+             "collision": {"method": "barrier", "thickness": TH, "self_collision": True, "self_friction": mu}}
+    sim = ic.Simulator(scene)
+    sim.step(settle)
+    sim.state.v[100:, 0] += v0
+    states = [sim.state.copy()]
+    for _ in range(steps):
+        sim.step(1)
+        states.append(sim.state)
+    return sim, states
+
+
+def test_friction_between_layers_stops_a_sliding_sheet_as_coulomb_says():
+    """The upper of two sheets, resting on the lower one (held by the floor's friction), is pushed to slide at
+    0.1 m/s: with self_friction 0.1 it stops within about Coulomb's ``v0^2 / (2 mu g)`` = 5 mm (the sheet's
+    weight for the normal force), without it it keeps sliding; the energy from the states never rises after the
+    push, the layers never cross and the run's own balance agrees."""
+    pytest.importorskip("ipctk")
+    sim, states = _slide(0.1)
+    upper = slice(100, 200)
+    travel = states[-1].x[upper, 0].mean() - states[0].x[upper, 0].mean()
+    coulomb = 0.1 ** 2 / (2 * 0.1 * 9.81)
+    assert 0.5 * coulomb < travel < 2.0 * coulomb, (travel, coulomb)
+    assert np.abs(states[-1].v[upper, 0]).mean() < 0.01
+    energy = [_energy(sim.model, s) for s in states]
+    assert np.all(np.diff(energy) <= 1e-9 + 1e-3 * abs(energy[0]))
+    assert all(_crossings(s.x, sim.model.faces) == 0 for s in states)
+    assert "energy" not in sim.health.events
+    free, free_states = _slide(0.0)
+    free_travel = free_states[-1].x[upper, 0].mean() - free_states[0].x[upper, 0].mean()
+    assert free_travel > 4 * travel and np.abs(free_states[6].v[upper, 0]).mean() > 0.05   # still sliding at 0.1 s

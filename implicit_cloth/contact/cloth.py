@@ -163,6 +163,69 @@ class ClothBarrier(ConservativeTerm):
         return self._safe
 
 
+class ClothFriction:
+    """IPC's lagged smoothed friction between layers of cloth (a dissipative :class:`~implicit_cloth.forces.Force`,
+    ``collision.self_friction``): on the pairs within the barrier's reach at the step's start, the toolkit's
+    ``D(v) = sum mu lambda f0(|T^T v|)`` with each pair's normal force ``lambda`` (the barrier's) and tangent
+    basis ``T`` of the step's start, smoothed below the sliding speed ``eps`` (Coulomb's law above it), on the
+    pair's relative velocity. Its Hessian (projected to positive semidefinite pair by pair) goes in as the
+    barrier's: diagonal blocks into the system, the rest into the solve's product (:attr:`coupling`)."""
+
+    name = "self_friction"
+    conservative = False
+    dissipative = True
+    elastic = False
+
+    def __init__(self, mesh: Any, potential: Any, collisions: Any) -> None:
+        import ipctk
+
+        self._ipc = ipctk
+        self.mesh, self.potential, self.collisions = mesh, potential, collisions
+        #: the off-diagonal part of the last Hessian (c_v scaled), for the solve's product; None if none
+        self.coupling: sp.csr_matrix | None = None
+
+    def __len__(self) -> int:
+        return len(self.collisions)
+
+    def energy(self, x: np.ndarray) -> float:
+        return 0.0
+
+    def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
+        pass
+
+    def dissipation(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        """``D(v)``, W (its ``-dD/dv`` is the friction on the cloth)."""
+        return float(self.potential(self.collisions, self.mesh, _f(v)))
+
+    def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
+        out -= np.asarray(self.potential.gradient(self.collisions, self.mesh, _f(v))).reshape(-1, 3)
+
+    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        return 0.0
+
+    def pairs(self) -> np.ndarray:
+        return np.zeros((0, 2), dtype=np.int64)
+
+    def bind(self, system: Any) -> None:
+        pass
+
+    def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
+        self.force(x, v, t, f)
+        H = sp.csr_matrix(self.potential.hessian(self.collisions, self.mesh, _f(v),
+                                                 self._ipc.PSDProjectionMethod.CLAMP))
+        self.coupling = None
+        if not H.nnz:
+            return
+        coo = (H * c_v).tocoo()
+        same = (coo.row // 3) == (coo.col // 3)
+        blocks = np.zeros((len(x), 3, 3))
+        np.add.at(blocks, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
+        system.blocks[system.diag_index] += blocks          # one diagonal block a vertex
+        off = ~same
+        if np.any(off):
+            self.coupling = sp.csr_matrix((coo.data[off], (coo.row[off], coo.col[off])), shape=H.shape)
+
+
 def _f(x: np.ndarray) -> np.ndarray:
     return np.asfortranarray(x, dtype=float)
 
@@ -179,6 +242,7 @@ class ClothContact:
 
             raise SceneError("collision.self_collision: the barrier method's self-contact needs the IPC Toolkit "
                              "(pip install 'implicit_cloth[ipc]'), got method = 'barrier'") from None
+        self._ipc = ipctk
         faces = np.asarray(model.faces, dtype=np.int64)
         self.mesh = ipctk.CollisionMesh(np.asfortranarray(model.rest_positions), ipctk.edges(faces), faces)
         self.thickness = float(settings["thickness"])
@@ -187,6 +251,24 @@ class ClothContact:
         # vertex mass over dt^2, over dhat^2, brings its force to the obstacles' at the same gap
         self.kappa = float(np.mean(model.masses)) / (float(dt) ** 2 * self.dhat ** 2)
         self.potential = ipctk.BarrierPotential(self.dhat, self.kappa)
+        from .obstacles import FRICTION_SPEED
+
+        #: the Coulomb coefficient between layers (``collision.self_friction``) and the friction's sliding speed
+        self.mu = float(settings.get("self_friction", 0.0))
+        self.eps = float(settings.get("friction_speed", FRICTION_SPEED))
+        self.friction_potential = ipctk.FrictionPotential(self.eps) if self.mu > 0.0 else None
 
     def term(self, x0: np.ndarray) -> ClothBarrier:
         return ClothBarrier(self.mesh, self.potential, self.xi, self.dhat, x0)
+
+    def friction(self, barrier: ClothBarrier, x0: np.ndarray) -> ClothFriction | None:
+        """The step's friction between layers, lagged at its start ``x0`` (the pairs ``barrier`` has within reach
+        there, their normal forces and tangent planes); None without ``self_friction`` or pairs."""
+        if self.friction_potential is None:
+            return None
+        normal = barrier._collisions_at(x0)
+        if not len(normal):
+            return None
+        tangential = self._ipc.TangentialCollisions()
+        tangential.build(self.mesh, _f(x0), normal, self.potential, self.mu)
+        return ClothFriction(self.mesh, self.friction_potential, tangential) if len(tangential) else None
