@@ -400,9 +400,10 @@ def test_the_self_contact_bound_survives_the_toolkit_s_collinear_edges():
 
 def test_a_cloth_pressed_harder_than_its_barrier_holds_stays_at_a_representable_gap():
     """A sheet on the floor under 10^4 g: the barrier (stiffness of the vertex's mass over dt^2) would hold it
-    below a micrometre, where each Newton iteration's path may close nine tenths of the gap; without a floor on
-    the paths the gap reached 1e-16 m and a step's balance became infinite (energy created). The paths stop at
-    1e-4 of the barrier's reach: the gap stays there, every energy finite, the run ok."""
+    below a micrometre. Each step's first iterate (its start velocity, toward the floor) may close nine tenths of
+    a gap; without a floor on that path the gap reached 1e-16 m and a step's balance became infinite (energy
+    created). The first iterate's paths stop at 1e-4 of the barrier's reach: the gap stays there, every energy
+    finite, the run ok."""
     from implicit_cloth.contact.obstacles import GAP_FLOOR
 
     scene = {"simulation": {"integrator": "backward_euler", "dt": 1 / 60, "duration": 0.5, "frame_rate": 60},

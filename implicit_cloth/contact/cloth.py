@@ -121,11 +121,12 @@ class ClothBarrier(ConservativeTerm):
             self.coupling = sp.csr_matrix((coo.data[off], (coo.row[off], coo.col[off])), shape=H.shape)
 
     # ------------------------------------------------------------------ safe moves
-    def filter_move(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    def filter_move(self, x: np.ndarray, dx: np.ndarray, first: bool = False) -> np.ndarray:
         """``dx`` with each vertex's move cut to :data:`SAFE` of the distance it may move on its own (the others
         still) without any pair of non-adjacent primitives coming within ``xi`` (the IPC Toolkit's per-vertex
         safe distances, Offset Geometric Contact's bound: a vertex far from the rest of the cloth is not held
-        back by a pair in contact elsewhere); ``dx`` itself when nothing is cut."""
+        back by a pair in contact elsewhere); ``dx`` itself when nothing is cut (``first``, the step's first
+        iterate, changes nothing here)."""
         # the cloth's common translation moves no pair closer: the bound is on each vertex's move beside it (a
         # falling sheet is not held back by its own rows); not where some vertices stay (pinned, held: a cut
         # would move them)

@@ -61,7 +61,8 @@ from . import barrier
 
 #: A line search moves a vertex at most this fraction of its gap to an obstacle.
 SAFE = 0.9
-#: No path comes nearer an obstacle than this fraction of the barrier's reach (:func:`_path_floor`).
+#: No path of a step's first iterate comes nearer an obstacle than this fraction of the barrier's reach
+#: (:func:`_path_floor`).
 GAP_FLOOR = 1e-4
 #: The barrier's stiffness per vertex, in units of its mass over the scene's ``dt^2``.
 BARRIER_STIFFNESS = 1.0
@@ -311,7 +312,7 @@ class ObstacleBarrier(ConservativeTerm):
             np.subtract.at(kw, i, np.einsum("kij,kj->ki", H, w[i]))
 
     # ------------------------------------------------------------------ safe steps
-    def fractions(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    def fractions(self, x: np.ndarray, dx: np.ndarray, first: bool = False) -> np.ndarray:
         """Per vertex (N,), the largest ``s <= 1`` such that moving the vertices along ``x + s' dx_v``,
         ``s' <= s``, keeps every primitive's gap above ``(1 - SAFE)`` of what it is at ``x``: for a vertex, a
         continuous check of its path (the shape's exact minimum along the segment, then conservative
@@ -327,7 +328,7 @@ class ObstacleBarrier(ConservativeTerm):
             p1 = self._local(ob, p0w + dw)
             # phi must stay above this along the path: (1 - SAFE) of the gap, of the barrier's reach for a vertex
             # farther (one arriving from afar reaches the barrier's zone in one move)
-            target = self.xi + _path_floor(g0, self.dhat)
+            target = self.xi + _path_floor(g0, self.dhat, first)
             low = _segment_low(ob.shape, p0, p1)
             near = np.flatnonzero((low < target) & moves)
             if len(near):
@@ -337,13 +338,13 @@ class ObstacleBarrier(ConservativeTerm):
         if not len(self.edges) or not any(self.edged):
             return s
         for _ in range(EDGE_PASSES):
-            cut = self._edge_fractions(x, dx * s[:, None])
+            cut = self._edge_fractions(x, dx * s[:, None], first)
             if cut is None:
                 return s
             e, f = cut
             np.minimum.at(s, e[:, 0], s[e[:, 0]] * f)
             np.minimum.at(s, e[:, 1], s[e[:, 1]] * f)
-        cut = self._edge_fractions(x, dx * s[:, None])
+        cut = self._edge_fractions(x, dx * s[:, None], first)
         if cut is not None:                 # scaled down as a whole: a prefix of the move just checked
             s *= float(cut[1].min())
         return s
@@ -381,13 +382,14 @@ class ObstacleBarrier(ConservativeTerm):
         m = np.einsum("ij,ij->i", nrm, move[idx]) + (target - g_end)
         return idx, nrm, m
 
-    def filter_move(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    def filter_move(self, x: np.ndarray, dx: np.ndarray, first: bool = False) -> np.ndarray:
         """``dx`` with each vertex's move cut to what its path allows (:meth:`fractions`); ``dx`` itself when
-        nothing is cut."""
-        s = self.fractions(x, dx)
+        nothing is cut. ``first``: the step's first iterate (its paths also kept off :data:`GAP_FLOOR`)."""
+        s = self.fractions(x, dx, first)
         return dx * s[:, None] if np.any(s < 1.0) else dx
 
-    def _edge_fractions(self, x: np.ndarray, dx: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    def _edge_fractions(self, x: np.ndarray, dx: np.ndarray, first: bool = False
+                        ) -> tuple[np.ndarray, np.ndarray] | None:
         """The edges whose gap the move ``dx`` would close by more than :data:`SAFE`, and the fraction of the
         move each allows (conservative advancement); None when every edge passes."""
         e = self.edges
@@ -407,7 +409,7 @@ class ObstacleBarrier(ConservativeTerm):
                 continue
             _, low0 = ob.shape.segment_minimum(a0[cand], a1[cand])
             g0 = low0 - self.xi
-            floor = _path_floor(g0, self.dhat)                  # as for the vertices (fractions)
+            floor = _path_floor(g0, self.dhat, first)           # as for the vertices (fractions)
             target = self.xi + floor
             lin = g0 - speed[cand] > floor                       # 1-Lipschitz: the whole move is safe
             check = np.flatnonzero(~lin)
@@ -557,16 +559,17 @@ class ObstacleBarrier(ConservativeTerm):
         return int(sum(len(st.g) for st in self.stencils(x)))
 
 
-def _path_floor(g0: np.ndarray, dhat: float) -> np.ndarray:
+def _path_floor(g0: np.ndarray, dhat: float, first: bool = False) -> np.ndarray:
     """The least gap a path from gap ``g0`` may reach in one move: ``1 - SAFE`` of the gap (of the barrier's reach
-    for a vertex farther), and never under :data:`GAP_FLOOR` of the reach (nor below ``g0`` if it is already
-    nearer). Without that floor a vertex resting on an obstacle with a little velocity toward it (a corner of
-    the triangle membrane's crumple pushed into the floor by its compressed triangles) lost nine tenths of its
-    gap every step: the step's first iterate, its predicted motion cut by the path, took it there, and the
-    Newton corrections that would lift it were scaled to nothing by the rest of the cloth's cuts. The gap reached
-    0 in floating point and the barrier's energy became infinite. (1e-3 held vertices arriving on a sphere
-    short of the step's minimiser: the drape test's energy rose by 1e-5 J.)"""
-    return np.maximum((1.0 - SAFE) * np.minimum(g0, dhat), np.minimum(g0, GAP_FLOOR * dhat))
+    for a vertex farther); for the step's ``first`` iterate never under :data:`GAP_FLOOR` of the reach either (nor
+    below ``g0`` if it is already nearer). The first iterate is the step's start velocity, cut: a vertex resting
+    on an obstacle with a little velocity toward it (a corner of the triangle membrane's crumple pushed into the
+    floor by its compressed triangles) lost nine tenths of its gap to it every step, the Newton corrections that
+    would lift it scaled to nothing by the rest of the cloth's cuts, until the gap was 0 in floating point and
+    the barrier's energy infinite. (The floor on every iterate cost the 64² crumple a third more solves, 7.3 a
+    substep; 1e-3 held vertices arriving on a sphere short of the step's minimiser.)"""
+    floor = (1.0 - SAFE) * np.minimum(g0, dhat)
+    return np.maximum(floor, np.minimum(g0, GAP_FLOOR * dhat)) if first else floor
 
 
 def _segment_low(shape: Any, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:

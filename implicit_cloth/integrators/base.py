@@ -626,7 +626,7 @@ class ImplicitIntegrator(Integrator):
             v[c.pinned] = c.pin_velocity
         # the first iterate: the start velocity, each vertex as far as the contacts allow from x_pred (v = 0)
         x0 = scheme.x_pred
-        v = bounds.start(x0, bounds.cut(x0, v))
+        v = bounds.start(x0, bounds.cut(x0, v, first=True))
         floor = MINIMIZE_FLOOR * np.sqrt(float(np.sum(M)))
         sysm = self.model.system
         diag0 = np.empty((self.model.n, 3, 3)) if terms else None   # the diagonal blocks without the contacts'
@@ -842,9 +842,10 @@ class _PathBounds:
         #: whether the last :meth:`cut` scaled the direction as a whole (its filters did not settle)
         self.scaled = False
 
-    def cut(self, x: np.ndarray, d: np.ndarray) -> np.ndarray:
+    def cut(self, x: np.ndarray, d: np.ndarray, first: bool = False) -> np.ndarray:
         """``d`` with each vertex's part cut to what every filter allows from ``x`` (``d`` itself if none cuts);
-        after :data:`FILTER_PASSES` passes that still cut, scaled down as a whole instead."""
+        after :data:`FILTER_PASSES` passes that still cut, scaled down as a whole instead. ``first``: the step's
+        first iterate (the filters' ``first``)."""
         self.scaled = False
         if not self.terms:
             return d
@@ -853,14 +854,14 @@ class _PathBounds:
         for _ in range(FILTER_PASSES):
             changed = False
             for f in self.terms:
-                new = f.filter_move(x, move)
+                new = f.filter_move(x, move, first)
                 if new is not move:
                     move, changed = new, True
             if not changed:
                 return move / self.c_v if cut else d
             cut = True
         self.scaled = True
-        return self.uniform(x, d) * d
+        return self.uniform(x, d, first) * d
 
     def normal_targets(self, x: np.ndarray, move: np.ndarray, idx: np.ndarray, full: np.ndarray,
                        stiffness: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -888,15 +889,15 @@ class _PathBounds:
                 move = f.start(x, move)
         return v if move is start else move / self.c_v
 
-    def allowed(self, x: np.ndarray, d: np.ndarray) -> bool:
+    def allowed(self, x: np.ndarray, d: np.ndarray, first: bool = False) -> bool:
         move = self.c_v * d
-        return all(f.filter_move(x, move) is move for f in self.terms)
+        return all(f.filter_move(x, move, first) is move for f in self.terms)
 
-    def uniform(self, x: np.ndarray, d: np.ndarray) -> float:
+    def uniform(self, x: np.ndarray, d: np.ndarray, first: bool = False) -> float:
         """The largest ``a = 2^-k <= 1`` found with ``a d`` allowed to every vertex whole; 0 if none is."""
         a = 1.0
         for _ in range(LINE_SEARCH_HALVINGS):
-            if not self.terms or self.allowed(x, a * d):
+            if not self.terms or self.allowed(x, a * d, first):
                 return a
             a *= 0.5
         return 0.0
