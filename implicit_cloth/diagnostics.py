@@ -245,11 +245,5 @@ def pin_step_work(model: Model, old: Any, new: Any, s0: tuple[np.ndarray, float]
     """
     p = model.pinned
     (f0, k0), (f1, k1) = s0, s1
-    if not np.array_equal(old.v[p], new.v[p]):
-        # the pins moved at new.v over the step (a key between the steps turned them): the force at its start is
-        # the one with that velocity (their damping and drag), not with the last step's
-        v = old.v.copy()
-        v[p] = new.v[p]
-        f0 = model.forces(old.x, v, old.t)[p]
     dx = new.x[p] - old.x[p]
     return (k1 - k0) - 0.5 * float(np.einsum("ij,ij->", f0 + f1, dx))
