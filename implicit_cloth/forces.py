@@ -101,6 +101,31 @@ class ConservativeTerm:
         pass
 
 
+class DissipativeTerm:
+    """What a purely dissipative term that adds no pairs to the pattern shares (the contacts' friction): no
+    potential energy, no outside power. A subclass gives ``name``, ``dissipation``, ``force`` and
+    ``linearize``."""
+
+    conservative = False
+    dissipative = True
+    elastic = False
+
+    def energy(self, x: np.ndarray) -> float:
+        return 0.0
+
+    def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
+        pass
+
+    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
+        return 0.0
+
+    def pairs(self) -> np.ndarray:
+        return np.zeros((0, 2), dtype=np.int64)
+
+    def bind(self, system: Any) -> None:
+        pass
+
+
 def energy(forces: Iterable[Force], x: np.ndarray) -> float:
     """``sum_f U_f(x)`` over the conservative forces, J."""
     return float(sum(f.energy(x) for f in forces if f.conservative))

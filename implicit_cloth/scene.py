@@ -322,20 +322,26 @@ def _membrane(d: Any, material: str | None, where: str = "cloth") -> dict[str, d
         spec = d.get(cond, {})
         check_keys(p, spec, ("stiffness", "damping"))
         base = preset.conditions()[cond] if preset is not None else None
-        if "stiffness" in spec:
-            k = number(f"{p}.stiffness", spec["stiffness"], lo=0.0, lo_open=True)
-        elif base is not None:
-            k = base.stiffness
-        elif material is not None:
-            raise SceneError(f"{p}.stiffness: missing (material {material!r} has no measured membrane values; give "
-                             f"the sheet's in-plane stiffness in N/m)")
-        else:
-            raise SceneError(f"{p}.stiffness: missing (the sheet's in-plane stiffness in N/m; no material preset "
-                             f"supplies it)")
+        k = _stiffness(p, spec, None if base is None else base.stiffness, material, "membrane values",
+                       "in-plane stiffness in N/m")
         kd = number(f"{p}.damping", spec["damping"], lo=0.0) if "damping" in spec else (
             base.damping if base is not None else 0.0)
         out[cond] = {"stiffness": k, "damping": kd}
     return out
+
+
+def _stiffness(path: str, spec: Mapping[str, Any], measured: float | None, material: str | None, lacks: str,
+               need: str) -> float:
+    """``path.stiffness`` (> 0) from the table, else the material's ``measured`` value; missing both, an error
+    saying what the material ``lacks`` or that no preset was named, and what to give (``need``)."""
+    if "stiffness" in spec:
+        return number(f"{path}.stiffness", spec["stiffness"], lo=0.0, lo_open=True)
+    if measured is not None:
+        return measured
+    if material is not None:
+        raise SceneError(f"{path}.stiffness: missing (material {material!r} has no measured {lacks}; give the "
+                         f"sheet's {need})")
+    raise SceneError(f"{path}.stiffness: missing (the sheet's {need}; no material preset supplies it)")
 
 
 def _bending(d: Any, material: str | None, where: str = "cloth") -> dict[str, Any]:
@@ -353,16 +359,7 @@ def _bending(d: Any, material: str | None, where: str = "cloth") -> dict[str, An
                                  f"theirs from {where}.springs.bend, in N/m and N*s/m), got {d[key]!r}")
         return {"model": "springs"}
     preset = MATERIALS[material].bending if material is not None else None
-    if "stiffness" in d:
-        k = number(f"{path}.stiffness", d["stiffness"], lo=0.0, lo_open=True)
-    elif preset is not None:
-        k = preset
-    elif material is not None:
-        raise SceneError(f"{path}.stiffness: missing (material {material!r} has no measured bending modulus; give "
-                         f"the sheet's bending modulus in N m)")
-    else:
-        raise SceneError(f"{path}.stiffness: missing (the sheet's bending modulus in N m; no material preset "
-                         f"supplies it)")
+    k = _stiffness(path, d, preset, material, "bending modulus", "bending modulus in N m")
     kd = number(f"{path}.damping", d["damping"], lo=0.0) if "damping" in d else 0.0
     rest = choice(f"{path}.rest_angle", d["rest_angle"], REST_ANGLES) if "rest_angle" in d else "mesh"
     return {"model": "dihedral", "stiffness": k, "damping": kd, "rest_angle": rest}

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from ..forces import ConservativeTerm
+from ..forces import ConservativeTerm, DissipativeTerm
 
 #: A vertex moves at most this fraction of its safe distance in one Newton iteration: under half (OGC's gamma_p),
 #: since the toolkit's safe distance is how far the vertex may move with everything else still, and both sides
@@ -106,19 +106,9 @@ class ClothBarrier(ConservativeTerm):
         self.gradient(x, t, g)
         f -= g
         H = self.hessian(x)
-        self.coupling = None
-        if not H.nnz:
-            return
-        if kw is not None and w is not None:   # (dF/dx) w
+        if H.nnz and kw is not None and w is not None:   # (dF/dx) w
             kw -= (H @ w.reshape(-1)).reshape(-1, 3)
-        coo = (H * c_x).tocoo()
-        same = (coo.row // 3) == (coo.col // 3)
-        blocks = np.zeros((len(x), 3, 3))
-        np.add.at(blocks, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
-        system.blocks[system.diag_index] += blocks          # one diagonal block a vertex
-        off = ~same
-        if np.any(off):
-            self.coupling = sp.csr_matrix((coo.data[off], (coo.row[off], coo.col[off])), shape=H.shape)
+        self.coupling = _enter(H, c_x, system)
 
     # ------------------------------------------------------------------ safe moves
     def filter_move(self, x: np.ndarray, dx: np.ndarray, first: bool = False) -> np.ndarray:
@@ -164,7 +154,7 @@ class ClothBarrier(ConservativeTerm):
         return self._safe
 
 
-class ClothFriction:
+class ClothFriction(DissipativeTerm):
     """IPC's lagged smoothed friction between layers of cloth (a dissipative :class:`~implicit_cloth.forces.Force`,
     ``collision.self_friction``): on the pairs within the barrier's reach at the step's start, the toolkit's
     ``D(v) = sum mu lambda f0(|T^T v|)`` with each pair's normal force ``lambda`` (the barrier's) and tangent
@@ -173,9 +163,6 @@ class ClothFriction:
     barrier's: diagonal blocks into the system, the rest into the solve's product (:attr:`coupling`)."""
 
     name = "self_friction"
-    conservative = False
-    dissipative = True
-    elastic = False
 
     def __init__(self, mesh: Any, potential: Any, collisions: Any) -> None:
         import ipctk
@@ -188,12 +175,6 @@ class ClothFriction:
     def __len__(self) -> int:
         return len(self.collisions)
 
-    def energy(self, x: np.ndarray) -> float:
-        return 0.0
-
-    def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
-        pass
-
     def dissipation(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
         """``D(v)``, W (its ``-dD/dv`` is the friction on the cloth)."""
         return float(self.potential(self.collisions, self.mesh, _f(v)))
@@ -201,30 +182,27 @@ class ClothFriction:
     def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
         out -= np.asarray(self.potential.gradient(self.collisions, self.mesh, _f(v))).reshape(-1, 3)
 
-    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
-        return 0.0
-
-    def pairs(self) -> np.ndarray:
-        return np.zeros((0, 2), dtype=np.int64)
-
-    def bind(self, system: Any) -> None:
-        pass
-
     def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
         self.force(x, v, t, f)
         H = sp.csr_matrix(self.potential.hessian(self.collisions, self.mesh, _f(v),
                                                  self._ipc.PSDProjectionMethod.CLAMP))
-        self.coupling = None
-        if not H.nnz:
-            return
-        coo = (H * c_v).tocoo()
-        same = (coo.row // 3) == (coo.col // 3)
-        blocks = np.zeros((len(x), 3, 3))
-        np.add.at(blocks, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
-        system.blocks[system.diag_index] += blocks          # one diagonal block a vertex
-        off = ~same
-        if np.any(off):
-            self.coupling = sp.csr_matrix((coo.data[off], (coo.row[off], coo.col[off])), shape=H.shape)
+        self.coupling = _enter(H, c_v, system)
+
+
+def _enter(H: sp.csr_matrix, scale: float, system: Any) -> sp.csr_matrix | None:
+    """``scale H`` (3N, 3N) into the solve: its diagonal blocks (one a vertex) added to ``system``'s, the rest
+    returned for the solve's product (None if nothing is off the diagonal blocks)."""
+    if not H.nnz:
+        return None
+    coo = (H * scale).tocoo()
+    same = (coo.row // 3) == (coo.col // 3)
+    blocks = np.zeros((H.shape[0] // 3, 3, 3))
+    np.add.at(blocks, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
+    system.blocks[system.diag_index] += blocks
+    off = ~same
+    if not np.any(off):
+        return None
+    return sp.csr_matrix((coo.data[off], (coo.row[off], coo.col[off])), shape=H.shape)
 
 
 def _f(x: np.ndarray) -> np.ndarray:

@@ -56,7 +56,7 @@ import numpy as np
 from ..collision.context import Obstacle, cloth_edges
 from ..collision.shapes import MeshShape, Shape
 from ..errors import SceneError
-from ..forces import ConservativeTerm
+from ..forces import ConservativeTerm, DissipativeTerm
 from . import barrier
 
 #: A line search moves a vertex at most this fraction of its gap to an obstacle.
@@ -692,16 +692,13 @@ class MeshField(Shape):
         return np.full(len(a0), 0.5), np.minimum(self.distance(a0), self.distance(a1)) - half
 
 
-class ObstacleFriction:
+class ObstacleFriction(DissipativeTerm):
     """IPC's lagged smoothed friction on the contacts of the step's start (a dissipative
     :class:`~implicit_cloth.forces.Force`): the sliding velocity is the cloth's relative to the obstacle's surface,
     ``v_t = P (v - u)`` with the obstacle's velocity ``u`` at the contact over the step (lagged like the normal:
     :attr:`Contacts.velocity`; 0 for a still obstacle)."""
 
     name = "friction"
-    conservative = False
-    dissipative = True
-    elastic = False
 
     def __init__(self, contacts: Contacts, eps: float) -> None:
         keep = (contacts.mu > 0) & (contacts.force > 0)
@@ -726,12 +723,6 @@ class ObstacleFriction:
         fc = -(self.scale * self._over_s(s))[:, None] * vt                  # each contact's force on the cloth
         return h * float(np.einsum("ij,ij->", fc, self.u))
 
-    def energy(self, x: np.ndarray) -> float:
-        return 0.0
-
-    def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
-        pass
-
     def dissipation(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
         _, s = self._tangent(v)
         e = self.eps
@@ -746,15 +737,6 @@ class ObstacleFriction:
     def force(self, x: np.ndarray, v: np.ndarray, t: float, out: np.ndarray) -> None:
         vt, s = self._tangent(v)
         np.subtract.at(out, self.idx, (self.scale * self._over_s(s))[:, None] * vt)
-
-    def power(self, x: np.ndarray, v: np.ndarray, t: float) -> float:
-        return 0.0
-
-    def pairs(self) -> np.ndarray:
-        return np.zeros((0, 2), dtype=np.int64)
-
-    def bind(self, system: Any) -> None:
-        pass
 
     def linearize(self, x, v, t, c_x, c_v, w, system, kw, f) -> None:
         if not len(self.idx):
