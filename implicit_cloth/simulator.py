@@ -338,10 +338,13 @@ class Simulator:
         t_detect = time.perf_counter() - t0
         share = NEWTON_ENERGY_SHARE * self._energy_growth
 
+        # the stored energies at the step's start, once (every Newton iterate's balance books them)
+        start = [f.energy(state.x) if f.conservative and not hasattr(f, "step_work") else 0.0 for f in terms]
+
         def contact_work(x1: np.ndarray, v1: np.ndarray) -> float:
             # what the barriers gave back (and moving obstacles' work through them and friction)
             return sum(f.step_work(state.x, x1, v1, h) if hasattr(f, "step_work")
-                       else f.energy(state.x) - f.energy(x1) for f in terms
+                       else e0 - f.energy(x1) for f, e0 in zip(terms, start)
                        if f.conservative or hasattr(f, "step_work"))
 
         def done(x1: np.ndarray, v1: np.ndarray, decrement: float) -> bool:

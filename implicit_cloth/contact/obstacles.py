@@ -166,6 +166,8 @@ class ObstacleBarrier(ConservativeTerm):
         self.kappa_edge = (kappa[e[:, 0]] + kappa[e[:, 1]]) / 6.0
         #: the safe-move filter's geometry of the last iterate (:meth:`_geometry`)
         self._geo_key: tuple[float, np.ndarray] | None = None
+        #: the step's start and the energy stored there (:meth:`step_work`)
+        self._start_energy: tuple[np.ndarray, float] | None = None
         self._geo: list = []
 
     # ------------------------------------------------------------------ geometry
@@ -194,7 +196,7 @@ class ObstacleBarrier(ConservativeTerm):
                 a0, a1 = loc[e[:, 0]], loc[e[:, 1]]
                 ends = np.minimum(ob.shape.distance(a0), ob.shape.distance(a1)) - self.xi
                 half = 0.5 * np.sqrt(np.einsum("ij,ij->i", a1 - a0, a1 - a0))
-                edge_geo = (a0, a1, ends, half)
+                edge_geo = (a0, a1, ends, half, np.full(len(e), np.nan))
             out.append((g0, p0, edge_geo))
         self._geo_key, self._geo = (self.t, x.copy()), out
         return out
@@ -204,6 +206,7 @@ class ObstacleBarrier(ConservativeTerm):
         at ``t1`` (:meth:`start` and :meth:`step_work` read the rest)."""
         out = copy.copy(self)
         out.t, out.t0, out.x_start = float(t1), float(t0), np.asarray(x0)
+        out._start_energy = None
         return out
 
     def stencils(self, x: np.ndarray, reach: float | None = None, t: float | None = None,
@@ -322,17 +325,23 @@ class ObstacleBarrier(ConservativeTerm):
         move is scaled down, a prefix of one that passed). 1 for pinned vertices."""
         s = np.ones(len(x))
         p0w, dw = x[self.free], dx[self.free]
-        moves = np.any(dw != 0.0, axis=1)          # a vertex that does not move crosses nothing
+        step = np.sqrt(np.einsum("ij,ij->i", dw, dw))
         geo = self._geometry(x)
         for (g0, p0, _), ob in zip(geo, self.obstacles):
-            p1 = self._local(ob, p0w + dw)
             # phi must stay above this along the path: (1 - SAFE) of the gap, of the barrier's reach for a vertex
             # farther (one arriving from afar reaches the barrier's zone in one move)
             target = self.xi + _path_floor(g0, self.dhat, first)
-            low = _segment_low(ob.shape, p0, p1)
-            near = np.flatnonzero((low < target) & moves)
+            # phi is 1-Lipschitz: a path shorter than its start's phi less the target is safe unchecked (and a
+            # vertex that does not move crosses nothing)
+            near = np.flatnonzero((step > 0.0) & (g0 + self.xi - step < target))
+            if not len(near):
+                continue
+            p1 = self._local(ob, p0w[near] + dw[near])
+            low = _segment_low(ob.shape, p0[near], p1)
+            hit = low < target[near]
+            near, p1 = near[hit], p1[hit]
             if len(near):
-                adv = _advance(ob.shape, p0[near], p1[near] - p0[near], target[near], g0[near] + self.xi,
+                adv = _advance(ob.shape, p0[near], p1 - p0[near], target[near], g0[near] + self.xi,
                                MESH_ADVANCE_ITERATIONS if ob.shape.name == "mesh" else ADVANCE_ITERATIONS)
                 s[self.free[near]] = np.minimum(s[self.free[near]], adv)
         if not len(self.edges) or not any(self.edged):
@@ -393,22 +402,28 @@ class ObstacleBarrier(ConservativeTerm):
         """The edges whose gap the move ``dx`` would close by more than :data:`SAFE`, and the fraction of the
         move each allows (conservative advancement); None when every edge passes."""
         e = self.edges
-        speed = np.sqrt(np.maximum(np.einsum("ij,ij->i", dx[e[:, 0]], dx[e[:, 0]]),
-                                   np.einsum("ij,ij->i", dx[e[:, 1]], dx[e[:, 1]])))
-        moving = speed > 0
+        vspeed = np.sqrt(np.einsum("ij,ij->i", dx, dx))
+        fastest = float(vspeed.max(initial=0.0))
         bad_e: list[np.ndarray] = []
         bad_f: list[np.ndarray] = []
         for ob, edged, (_, _, edge_geo) in zip(self.obstacles, self.edged, self._geometry(x)):
             if not edged:
                 continue
             assert edge_geo is not None
-            a0, a1, ends, half = edge_geo
+            a0, a1, ends, half, low_all = edge_geo
             # only edges the move could bring near: gap lower bound minus the move below (1 - SAFE) of a gap
-            cand = np.flatnonzero(moving & (ends - half - speed < self.dhat))
+            cand = np.flatnonzero(ends - half - fastest < self.dhat)
+            speed_c = np.maximum(vspeed[e[cand, 0]], vspeed[e[cand, 1]])
+            keep = (speed_c > 0) & (ends[cand] - half[cand] - speed_c < self.dhat)
+            cand = cand[keep]
             if not len(cand):
                 continue
-            _, low0 = ob.shape.segment_minimum(a0[cand], a1[cand])
-            g0 = low0 - self.xi
+            speed = np.zeros(len(e))
+            speed[cand] = speed_c[keep]
+            unknown = cand[np.isnan(low_all[cand])]        # each edge's least distance at x, once an iterate
+            if len(unknown):
+                low_all[unknown] = ob.shape.segment_minimum(a0[unknown], a1[unknown])[1]
+            g0 = low_all[cand] - self.xi
             floor = _path_floor(g0, self.dhat, first)           # as for the vertices (fractions)
             target = self.xi + floor
             lin = g0 - speed[cand] > floor                       # 1-Lipschitz: the whole move is safe
@@ -543,7 +558,10 @@ class ObstacleBarrier(ConservativeTerm):
         obstacle, so moving the obstacle by ``delta`` at a contact changes it by ``F . delta`` (``F =
         -dU/dx`` the contact force on the cloth), here the end-of-step force times the step's displacement of
         the obstacle's material point at the contact (backward Euler's quadrature)."""
-        work = self.energy(x0, self.t0) - self.energy(x1)
+        e0 = self._start_energy
+        if e0 is None or e0[0] is not x0:       # the step's start, once a step (every iterate's balance asks)
+            e0 = self._start_energy = (x0, self.energy(x0, self.t0))
+        work = e0[1] - self.energy(x1)
         if not any(self.moving):
             return work
         for st in self.stencils(x1):
