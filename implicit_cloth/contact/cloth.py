@@ -11,7 +11,7 @@ edge-edge distances, and Offset Geometric Contact's per-vertex trust regions, Ch
   diagonal blocks go into the system (the multigrid sees them), the rest into the solve's product
   (:attr:`ClothBarrier.coupling`).
 * :meth:`ClothBarrier.filter_move`: each vertex's move cut to the distance it may move on its own without any
-  pair coming within ``xi`` (OGC's per-vertex bound, the IPC Toolkit's safe distances), so no iterate crosses
+  pair coming within ``xi`` (OGC's per-vertex bound, compiled: :mod:`implicit_cloth.kernels.proximity`), so no iterate crosses
   the cloth, without CCD, and a pair in contact does not hold the rest of the cloth back. (Tried first and
   left: ``ipctk.ogc``'s planar divide-and-truncate removed every move, however small, of a few hundred vertices
   of a 32² sheet falling onto a rod; the global CCD step, one pair in contact stopped the whole sheet.)
@@ -27,12 +27,14 @@ import scipy.sparse as sp
 from ..forces import ConservativeTerm, DissipativeTerm
 
 #: A vertex moves at most this fraction of its safe distance in one Newton iteration: under half (OGC's gamma_p),
-#: since the toolkit's safe distance is how far the vertex may move with everything else still, and both sides
+#: since a vertex's safe distance is how far it may move with everything else still, and both sides
 #: of a pair move (with 0.9 two stacked sheets came 0.3 mm within the offset on one run)
 SAFE = 0.45
 #: The candidates are gathered this many times the longest move (plus the offset) out, so that the safe
 #: distances' cap there lets the fastest vertex move whole (SAFE x INFLATION > 1).
 INFLATION = 2.5
+#: The proximity grid has cells no smaller than the cloth's extent over this
+GRID_CELLS = 64
 
 
 class ClothBarrier(ConservativeTerm):
@@ -41,7 +43,8 @@ class ClothBarrier(ConservativeTerm):
 
     name = "self_contact"
 
-    def __init__(self, mesh: Any, potential: Any, xi: float, dhat: float, x0: np.ndarray) -> None:
+    def __init__(self, mesh: Any, potential: Any, xi: float, dhat: float, x0: np.ndarray,
+                 primitives: "_Primitives | None" = None) -> None:
         import ipctk
 
         self._ipc = ipctk
@@ -56,6 +59,7 @@ class ClothBarrier(ConservativeTerm):
         #: the last iterate's safe distances and the radius they were gathered in (:meth:`_safe_distances`)
         self._safe_key: tuple[float, np.ndarray] | None = None
         self._safe = np.zeros(0)
+        self._primitives = primitives if primitives is not None else _Primitives(mesh)
 
     def _collisions_at(self, x: np.ndarray) -> Any:
         """The pairs within reach at ``x`` (cached for the last ``x``)."""
@@ -113,8 +117,8 @@ class ClothBarrier(ConservativeTerm):
     # ------------------------------------------------------------------ safe moves
     def filter_move(self, x: np.ndarray, dx: np.ndarray, first: bool = False) -> np.ndarray:
         """``dx`` with each vertex's move cut to :data:`SAFE` of the distance it may move on its own (the others
-        still) without any pair of non-adjacent primitives coming within ``xi`` (the IPC Toolkit's per-vertex
-        safe distances, Offset Geometric Contact's bound: a vertex far from the rest of the cloth is not held
+        still) without any pair of non-adjacent primitives coming within ``xi`` (per-vertex safe distances,
+        Offset Geometric Contact's bound: a vertex far from the rest of the cloth is not held
         back by a pair in contact elsewhere); ``dx`` itself when nothing is cut (``first``, the step's first
         iterate, changes nothing here)."""
         # the cloth's common translation moves no pair closer: the bound is on each vertex's move beside it (a
@@ -133,25 +137,39 @@ class ClothBarrier(ConservativeTerm):
         return shift + rel * s[:, None]
 
     def _safe_distances(self, x: np.ndarray, inflation: float) -> np.ndarray:
-        """Each vertex's safe distance at ``x`` (N,), m: from the pairs within the offset and ``inflation`` (at
-        least INFLATION times the longest move; a vertex with nothing that near is capped there and not cut, a
-        pair beyond it cannot close that distance in one move). Cached for the last ``x``: a Newton iteration
-        filters many moves from one iterate, each no longer than the cached radius allows (a larger radius
-        gathers more pairs, and caps higher, so the distances stay valid for every shorter move)."""
+        """Each vertex's safe distance at ``x`` (N,), m: its least distance to the primitives not adjacent to it,
+        less the offset ``xi``, from the pairs within the offset and ``inflation`` (at least INFLATION times the
+        longest move; a vertex with nothing that near is capped there and not cut, a pair beyond it cannot close
+        that distance in one move) (:func:`~implicit_cloth.kernels.proximity.clearance`). Cached for the last
+        ``x``: a Newton iteration filters many moves from one iterate, each no longer than the cached radius
+        allows (a larger radius gathers more pairs, and caps higher, so the distances stay valid for every
+        shorter move)."""
         if self._safe_key is not None and self._safe_key[0] >= inflation and np.array_equal(self._safe_key[1], x):
             return self._safe
-        xf = _f(x)
-        cand = self._ipc.Candidates()
-        cand.build(self.mesh, xf, inflation)
-        safe = np.asarray(cand.compute_per_vertex_safe_distances(self.mesh, xf, inflation, self.xi)).reshape(-1)
-        # The toolkit (1.6) measures two nearly collinear edges (a flat grid's rows and diagonals) by the
-        # distance of their lines, 0 however far apart they are: a vertex on them would get -xi and its move
-        # reversed. No pair is nearer than the least distance of the pairs within the barrier's reach (dhat
-        # past the offset; every pair beyond it is farther), so that is every vertex's floor.
-        floor = max(min(self.distance(x), self.xi + self.dhat) - self.xi, 0.0)
-        self._safe = np.maximum(safe, floor)
+        from ..kernels.proximity import clearance
+
+        radius = inflation + self.xi
+        lo = x.min(axis=0) - 1e-9
+        hi = x.max(axis=0)
+        h = max(radius, self._primitives.edge_length, float(np.max(hi - lo)) / GRID_CELLS)
+        dims = np.maximum(np.ceil((hi - lo) / h).astype(np.int64), 1)
+        out = np.empty(len(x))
+        clearance(np.ascontiguousarray(x, dtype=float), self._primitives.faces, self._primitives.edges, radius,
+                  lo, h, dims, out)
+        self._safe = out - self.xi
         self._safe_key = (inflation, x.copy())
         return self._safe
+
+
+class _Primitives:
+    """A collision mesh's faces and edges for :func:`~implicit_cloth.kernels.proximity.clearance`, and its mean
+    edge length at rest (the proximity grid's least cell)."""
+
+    def __init__(self, mesh: Any) -> None:
+        self.faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+        self.edges = np.ascontiguousarray(mesh.edges, dtype=np.int64)
+        rest = np.asarray(mesh.rest_positions)
+        self.edge_length = float(np.mean(np.linalg.norm(rest[self.edges[:, 1]] - rest[self.edges[:, 0]], axis=1)))
 
 
 class ClothFriction(DissipativeTerm):
@@ -230,6 +248,7 @@ class ClothContact:
         # vertex mass over dt^2, over dhat^2, brings its force to the obstacles' at the same gap
         self.kappa = float(np.mean(model.masses)) / (float(dt) ** 2 * self.dhat ** 2)
         self.potential = ipctk.BarrierPotential(self.dhat, self.kappa)
+        self._primitives = _Primitives(self.mesh)
         from .obstacles import FRICTION_SPEED
 
         #: the Coulomb coefficient between layers (``collision.self_friction``) and the friction's sliding speed
@@ -238,7 +257,7 @@ class ClothContact:
         self.friction_potential = ipctk.FrictionPotential(self.eps) if self.mu > 0.0 else None
 
     def term(self, x0: np.ndarray) -> ClothBarrier:
-        return ClothBarrier(self.mesh, self.potential, self.xi, self.dhat, x0)
+        return ClothBarrier(self.mesh, self.potential, self.xi, self.dhat, x0, self._primitives)
 
     def friction(self, barrier: ClothBarrier, x0: np.ndarray) -> ClothFriction | None:
         """The step's friction between layers, lagged at its start ``x0`` (the pairs ``barrier`` has within reach
