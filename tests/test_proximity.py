@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 pytest.importorskip("numba")
-from implicit_cloth.collision.ccd import point_triangle_closest, segment_closest  # noqa: E402
-from implicit_cloth.kernels.proximity import clearance  # noqa: E402
+from implicit_cloth.collision.ccd import point_triangle_closest, segment_closest
+from implicit_cloth.kernels.proximity import clearance
 
 
 def _sheet(n, rng, fold=True):
@@ -41,7 +41,7 @@ def _brute(x, faces, edges, radius):
         near = d < radius
         for col in (np.full(len(f), p), f[:, 0], f[:, 1], f[:, 2]):
             np.minimum.at(out, col[near], d[near])
-    for i, (a, b) in enumerate(edges):
+    for a, b in edges:
         keep = np.all((edges != a) & (edges != b), axis=1)
         e = edges[keep]
         s, t = segment_closest(np.repeat(x[a:a + 1], len(e), 0), np.repeat(x[b:b + 1], len(e), 0), x[e[:, 0]],

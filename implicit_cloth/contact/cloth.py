@@ -11,10 +11,11 @@ edge-edge distances, and Offset Geometric Contact's per-vertex trust regions, Ch
   diagonal blocks go into the system (the multigrid sees them), the rest into the solve's product
   (:attr:`ClothBarrier.coupling`).
 * :meth:`ClothBarrier.filter_move`: each vertex's move cut to the distance it may move on its own without any
-  pair coming within ``xi`` (OGC's per-vertex bound, compiled: :mod:`implicit_cloth.kernels.proximity`), so no iterate crosses
-  the cloth, without CCD, and a pair in contact does not hold the rest of the cloth back. (Tried first and
-  left: ``ipctk.ogc``'s planar divide-and-truncate removed every move, however small, of a few hundred vertices
-  of a 32² sheet falling onto a rod; the global CCD step, one pair in contact stopped the whole sheet.)
+  pair coming within ``xi`` (OGC's per-vertex bound, compiled: :mod:`implicit_cloth.kernels.proximity`), so no
+  iterate crosses the cloth, without CCD, and a pair in contact does not hold the rest of the cloth back.
+  (Tried first and left: ``ipctk.ogc``'s planar divide-and-truncate removed every move, however small, of a
+  few hundred vertices of a 32² sheet falling onto a rod; the global CCD step, one pair in contact stopped the
+  whole sheet.)
 """
 
 from __future__ import annotations

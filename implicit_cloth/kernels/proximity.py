@@ -149,9 +149,16 @@ def clearance(x, faces, edges, radius, lo, h, dims, out):
     (two edges sharing no vertex) nearer than ``radius`` at ``x`` (N, 3), each pair's distance taken by all of its
     four vertices. The grid: origin ``lo``, cell size ``h``, ``dims`` cells (vertices and edges' midpoints binned;
     each triangle's and edge's box, grown by the radius, searched)."""
-    r2 = radius * radius
     for i in range(out.shape[0]):
         out[i] = radius
+    _point_triangle_pass(x, faces, radius, lo, h, dims, out)
+    _edge_edge_pass(x, edges, radius, lo, h, dims, out)
+
+
+@njit(cache=True)
+def _point_triangle_pass(x, faces, radius, lo, h, dims, out):
+    """:func:`clearance`'s point-triangle pairs: the vertices binned, each triangle's grown box searched."""
+    r2 = radius * radius
     order, start = _grid(x, lo, h, dims)
     for t in range(faces.shape[0]):
         a, b, c = faces[t, 0], faces[t, 1], faces[t, 2]
@@ -182,8 +189,13 @@ def clearance(x, faces, edges, radius, lo, h, dims, out):
                             out[a] = min(out[a], d)
                             out[b] = min(out[b], d)
                             out[c] = min(out[c], d)
-    # edges binned by their midpoints: an edge within the radius of another has its midpoint within the radius
-    # plus half the longest edge of that one's box
+
+
+@njit(cache=True)
+def _edge_edge_pass(x, edges, radius, lo, h, dims, out):
+    """:func:`clearance`'s edge-edge pairs: edges binned by their midpoints (an edge within the radius of another
+    has its midpoint within the radius plus half the longest edge of that one's box)."""
+    r2 = radius * radius
     ne = edges.shape[0]
     mid = np.empty((ne, 3))
     half = 0.0
