@@ -240,3 +240,81 @@ def _edge_edge_pass(x, edges, radius, lo, h, dims, out):
                             out[b] = min(out[b], dd)
                             out[c] = min(out[c], dd)
                             out[d] = min(out[d], dd)
+
+
+@njit(cache=True)
+def _capsule_gap(a0, a1, m, sigma, shift, half_height, radius, w0, w1, c0, c1):
+    """The edge ``a0 a1`` translated by ``sigma m``: its least distance to the capsule (axis from ``-half_height``
+    to ``half_height`` on z, ``radius``) less ``sigma shift``."""
+    for k in range(3):
+        w0[k] = a0[k] + sigma * m[k]
+        w1[k] = a1[k] + sigma * m[k]
+    return math.sqrt(segment_distance2(w0, w1, c0, c1)) - radius - sigma * shift
+
+
+@njit(cache=True)
+def capsule_edge_prefix(a0, a1, m, shift, target, half_height, radius, steps, out):
+    """:func:`implicit_cloth.contact.obstacles.edge_prefix` for a capsule (local frame), compiled: per edge, the
+    largest ``s <= 1`` with ``h(sigma) = gap(edge + sigma m) - sigma shift >= target`` on ``[0, s]``, into
+    ``out`` (the same golden-section bracket, convex certificate and bisection as the numpy reference)."""
+    g = 0.5 * (math.sqrt(5.0) - 1.0)
+    w0 = np.empty(3)
+    w1 = np.empty(3)
+    c0 = np.zeros(3)
+    c1 = np.zeros(3)
+    c0[2] = -half_height
+    c1[2] = half_height
+    for k in range(a0.shape[0]):
+        A0, A1, M, sh, T = a0[k], a1[k], m[k], shift[k], target[k]
+        lo, hi = 0.0, 1.0
+        f_lo = _capsule_gap(A0, A1, M, lo, sh, half_height, radius, w0, w1, c0, c1)
+        f_hi = _capsule_gap(A0, A1, M, hi, sh, half_height, radius, w0, w1, c0, c1)
+        m1, m2 = hi - g * (hi - lo), lo + g * (hi - lo)
+        f1 = _capsule_gap(A0, A1, M, m1, sh, half_height, radius, w0, w1, c0, c1)
+        f2 = _capsule_gap(A0, A1, M, m2, sh, half_height, radius, w0, w1, c0, c1)
+        for _ in range(steps):
+            if f1 < f2:
+                hi, f_hi, m2, f2 = m2, f2, m1, f1
+                m1 = hi - g * (hi - lo)
+                f1 = _capsule_gap(A0, A1, M, m1, sh, half_height, radius, w0, w1, c0, c1)
+            else:
+                lo, f_lo, m1, f1 = m1, f1, m2, f2
+                m2 = lo + g * (hi - lo)
+                f2 = _capsule_gap(A0, A1, M, m2, sh, half_height, radius, w0, w1, c0, c1)
+        if _convex_floor(lo, m1, m2, hi, f_lo, f1, f2, f_hi) >= T:
+            out[k] = 1.0
+            continue
+        if f_lo >= T:
+            out[k] = lo
+            continue
+        b_lo, b_hi = 0.0, lo
+        for _ in range(steps):
+            mid = 0.5 * (b_lo + b_hi)
+            if _capsule_gap(A0, A1, M, mid, sh, half_height, radius, w0, w1, c0, c1) >= T:
+                b_lo = mid
+            else:
+                b_hi = mid
+        out[k] = b_lo
+
+
+@njit(cache=True)
+def _line(xa, fa, xb, fb, x):
+    return fa + (fb - fa) * (x - xa) / (xb - xa) if xb > xa else min(fa, fb)
+
+
+@njit(cache=True)
+def _convex_floor(lo, m1, m2, hi, f_lo, f1, f2, f_hi):
+    """A lower bound of a convex function's least value on ``[lo, hi]`` from its values at ``lo < m1 < m2 < hi``
+    (secants lie below a convex function outside the interval they span)."""
+    outer = min(f1, _line(m1, f1, m2, f2, lo), f2, _line(m1, f1, m2, f2, hi))
+    a = max(f1, _line(m2, f2, hi, f_hi, m1))
+    b = max(_line(lo, f_lo, m1, f1, m2), f2)
+    inner = min(a, b)
+    # where the two outer secants cross inside [m1, m2]
+    s01 = (f1 - f_lo) / (m1 - lo) if m1 > lo else 0.0
+    s23 = (f_hi - f2) / (hi - m2) if hi > m2 else 0.0
+    if s23 != s01:
+        xc = (f2 - s23 * m2 - f1 + s01 * m1) / (s01 - s23)
+        if m1 < xc < m2:
+            inner = min(inner, f1 + s01 * (xc - m1))
+    return min(outer, inner)
