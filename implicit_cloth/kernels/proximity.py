@@ -192,46 +192,81 @@ def _point_triangle_pass(x, faces, radius, lo, h, dims, out):
 
 
 @njit(cache=True)
+def _bin_boxes(box, lo, h, dims):
+    """Boxes (K, 6: low corner, high corner) binned into every cell of the grid they meet: each cell's entries
+    are ``entries[start[c]:start[c + 1]]``."""
+    n = box.shape[0]
+    nc = dims[0] * dims[1] * dims[2]
+    span = np.empty((n, 6), dtype=np.int64)
+    start = np.zeros(nc + 1, dtype=np.int64)
+    for i in range(n):
+        for k in range(3):
+            span[i, k], span[i, 3 + k] = _cells(box[i, k], box[i, 3 + k], lo[k], h, dims[k])
+        for ix in range(span[i, 0], span[i, 3] + 1):
+            for iy in range(span[i, 1], span[i, 4] + 1):
+                for iz in range(span[i, 2], span[i, 5] + 1):
+                    start[(ix * dims[1] + iy) * dims[2] + iz + 1] += 1
+    for c in range(nc):
+        start[c + 1] += start[c]
+    fill = start[:nc].copy()
+    entries = np.empty(start[nc], dtype=np.int64)
+    for i in range(n):
+        for ix in range(span[i, 0], span[i, 3] + 1):
+            for iy in range(span[i, 1], span[i, 4] + 1):
+                for iz in range(span[i, 2], span[i, 5] + 1):
+                    c = (ix * dims[1] + iy) * dims[2] + iz
+                    entries[fill[c]] = i
+                    fill[c] += 1
+    return start, entries
+
+
+@njit(cache=True, inline="always")
+def _meets_here(box, i, j, radius, ix, iy, iz, lo, h, dims):
+    """Whether box ``j`` meets box ``i`` grown by ``radius`` and the low corner of their overlap lies in the cell
+    ``(ix, iy, iz)`` (so that a pair found in several cells is taken in one)."""
+    for k in range(3):
+        if box[j, k] > box[i, 3 + k] + radius or box[j, 3 + k] < box[i, k] - radius:
+            return False
+    return (_cell(max(box[j, 0], box[i, 0] - radius), lo[0], h, dims[0]) == ix
+            and _cell(max(box[j, 1], box[i, 1] - radius), lo[1], h, dims[1]) == iy
+            and _cell(max(box[j, 2], box[i, 2] - radius), lo[2], h, dims[2]) == iz)
+
+
+@njit(cache=True, inline="always")
+def _cell(v, lo, h, dim):
+    return min(max(int((v - lo) / h), 0), dim - 1)
+
+
+@njit(cache=True)
 def _edge_edge_pass(x, edges, radius, lo, h, dims, out):
-    """:func:`clearance`'s edge-edge pairs: edges binned by their midpoints (an edge within the radius of another
-    has its midpoint within the radius plus half the longest edge of that one's box)."""
+    """:func:`clearance`'s edge-edge pairs: each edge's box binned into every cell it meets, each box grown by the
+    radius searched; a pair met in several cells is measured in one, the cell of its boxes' overlap's low
+    corner."""
     r2 = radius * radius
     ne = edges.shape[0]
-    mid = np.empty((ne, 3))
-    half = 0.0
+    box = np.empty((ne, 6))
     for i in range(ne):
         for k in range(3):
-            mid[i, k] = 0.5 * (x[edges[i, 0], k] + x[edges[i, 1], k])
-        dx = x[edges[i, 1], 0] - x[edges[i, 0], 0]
-        dy = x[edges[i, 1], 1] - x[edges[i, 0], 1]
-        dz = x[edges[i, 1], 2] - x[edges[i, 0], 2]
-        half = max(half, 0.5 * math.sqrt(dx * dx + dy * dy + dz * dz))
-    eorder, estart = _grid(mid, lo, h, dims)
-    grow = radius + half
+            box[i, k] = min(x[edges[i, 0], k], x[edges[i, 1], k])
+            box[i, 3 + k] = max(x[edges[i, 0], k], x[edges[i, 1], k])
+    start, entries = _bin_boxes(box, lo, h, dims)
     for i in range(ne):
         a, b = edges[i, 0], edges[i, 1]
-        bx0 = min(x[a, 0], x[b, 0]) - grow
-        bx1 = max(x[a, 0], x[b, 0]) + grow
-        by0 = min(x[a, 1], x[b, 1]) - grow
-        by1 = max(x[a, 1], x[b, 1]) + grow
-        bz0 = min(x[a, 2], x[b, 2]) - grow
-        bz1 = max(x[a, 2], x[b, 2]) + grow
-        x0, x1 = _cells(bx0, bx1, lo[0], h, dims[0])
-        y0, y1 = _cells(by0, by1, lo[1], h, dims[1])
-        z0, z1 = _cells(bz0, bz1, lo[2], h, dims[2])
+        x0, x1 = _cells(box[i, 0] - radius, box[i, 3] + radius, lo[0], h, dims[0])
+        y0, y1 = _cells(box[i, 1] - radius, box[i, 4] + radius, lo[1], h, dims[1])
+        z0, z1 = _cells(box[i, 2] - radius, box[i, 5] + radius, lo[2], h, dims[2])
         for ix in range(x0, x1 + 1):
             for iy in range(y0, y1 + 1):
                 for iz in range(z0, z1 + 1):
                     cc = (ix * dims[1] + iy) * dims[2] + iz
-                    for k in range(estart[cc], estart[cc + 1]):
-                        j = eorder[k]
+                    for k in range(start[cc], start[cc + 1]):
+                        j = entries[k]
                         if j <= i:
                             continue
                         c, d = edges[j, 0], edges[j, 1]
                         if c == a or c == b or d == a or d == b:
                             continue
-                        mx, my, mz = mid[j, 0], mid[j, 1], mid[j, 2]
-                        if mx < bx0 or mx > bx1 or my < by0 or my > by1 or mz < bz0 or mz > bz1:
+                        if not _meets_here(box, i, j, radius, ix, iy, iz, lo, h, dims):
                             continue
                         d2 = segment_distance2(x[a], x[b], x[c], x[d])
                         if d2 < r2:
