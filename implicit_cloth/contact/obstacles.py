@@ -82,15 +82,6 @@ MESH_ADVANCE_ITERATIONS = 4
 SWEPT_REFINE = (8, 64)
 #: Passes of the edges' check over the cut moves (:meth:`ObstacleBarrier.fractions`) before the move is scaled.
 EDGE_PASSES = 3
-#: Golden-section and bisection steps of an edge's path check (:func:`edge_prefix`): a bracket of 0.618^30 = 5e-7
-PREFIX_STEPS = 30
-#: Whether the capsule's edge path check runs compiled (False: the numpy reference)
-COMPILED_PATHS = True
-#: The shapes whose edge path check is :func:`edge_prefix` (an edge slides along them whole); the others keep
-#: conservative advancement of the edge's gap, which stops an edge sliding near the surface: on a sphere, edges
-#: sliding whole gained energy (9e-7 J in one step of a 12² drape on a 0.2 m sphere), through the edge barrier's
-#: non-convexity over a curved surface (the nearest point moves along the edge); stuck, they did not
-PREFIX_SHAPES = ("capsule",)
 #: Point-triangle pairs a mesh's distance query evaluates all at once before it searches the triangles' boxes.
 BRUTE_PAIRS = 50_000
 #: The friction's sliding speed when the scene gives none, m/s.
@@ -442,11 +433,19 @@ class ObstacleBarrier(ConservativeTerm):
             k = cand[check]
             d0 = self._local(ob, x[e[k, 0]] + dx[e[k, 0]]) - a0[k]
             d1 = self._local(ob, x[e[k, 1]] + dx[e[k, 1]]) - a1[k]
-            if ob.shape.name in PREFIX_SHAPES:
-                frac = edge_prefix(ob.shape, a0[k], a1[k], d0, d1, target[check])
-            else:
-                frac = _edge_advance(ob.shape, a0[k], a1[k], d0, d1, target[check], speed[k],
-                                     0.01 * (g0[check] + self.xi))
+            frac = np.zeros(len(k))
+            live = np.arange(len(k))
+            tol = 0.01 * (g0[check] + self.xi)
+            for _ in range(ADVANCE_ITERATIONS):
+                q0 = a0[k[live]] + frac[live, None] * d0[live]
+                q1 = a1[k[live]] + frac[live, None] * d1[live]
+                _, low = ob.shape.segment_minimum(q0, q1)
+                gap = low - target[check[live]]
+                step = np.maximum(gap, 0.0) / speed[k[live]]
+                frac[live] = np.minimum(frac[live] + step, 1.0 + 1e-12)
+                live = live[(gap > tol[live]) & (frac[live] <= 1.0)]
+                if not len(live):
+                    break
             f = np.clip(frac, 0.0, 1.0)
             short = f < 1.0
             if np.any(short):
@@ -612,107 +611,6 @@ def needs_edges(shape: Any, longest: float, xi: float) -> bool:
         return False
     radius = getattr(shape, "radius", 0.0) if shape.name in ("sphere", "capsule") else 0.0
     return radius <= 0.0 or longest * longest / (8.0 * radius) > 0.5 * xi
-
-
-def _edge_advance(shape: Any, a0: np.ndarray, a1: np.ndarray, d0: np.ndarray, d1: np.ndarray, target: np.ndarray,
-                  speed: np.ndarray, tol: np.ndarray) -> np.ndarray:
-    """Per edge, the fraction of its ends' moves ``d0, d1`` (local) that conservative advancement of its gap
-    reaches before ``target`` (the gap changes no faster than the faster end moves), within ``tol`` of it."""
-    frac = np.zeros(len(a0))
-    live = np.arange(len(a0))
-    for _ in range(ADVANCE_ITERATIONS):
-        q0 = a0[live] + frac[live, None] * d0[live]
-        q1 = a1[live] + frac[live, None] * d1[live]
-        _, low = shape.segment_minimum(q0, q1)
-        gap = low - target[live]
-        frac[live] = np.minimum(frac[live] + np.maximum(gap, 0.0) / speed[live], 1.0 + 1e-12)
-        live = live[(gap > tol[live]) & (frac[live] <= 1.0)]
-        if not len(live):
-            break
-    return np.clip(frac, 0.0, 1.0)
-
-
-def edge_prefix(shape: Any, a0: np.ndarray, a1: np.ndarray, d0: np.ndarray, d1: np.ndarray, target: np.ndarray,
-                steps: int = PREFIX_STEPS) -> np.ndarray:
-    """Per edge (K,), the largest ``s <= 1`` such that the edge whose ends move from ``a0, a1`` along ``d0, d1``
-    (local frame) keeps the shape's distance above ``target`` over ``[0, s]`` of the move: at least its lower
-    bound ``h(sigma) = gap(edge + sigma m) - sigma delta``, the edge translated by its ends' mean move ``m``
-    (``delta = |d1 - d0| / 2`` bounds how far the rest of the move takes any of its points; ``phi`` is
-    1-Lipschitz). ``h`` is convex for a convex shape (the least distance of a translated segment is a partial
-    minimum of a jointly convex function, less a linear term), so its least value on ``[0, 1]`` is bracketed by
-    golden-section search and certified from the bracket's four values (secants lie below a convex function
-    outside their span), and its first crossing of ``target`` found by bisection where it is not. An edge
-    sliding over a rod with a gap of a nanometre keeps its whole move (conservative advancement, whose steps are
-    the gap over the speed, would stop it). The capsule is compiled
-    (:func:`~implicit_cloth.kernels.proximity.capsule_edge_prefix`); this is its reference."""
-    m = 0.5 * (d0 + d1)
-    shift = 0.5 * np.sqrt(np.einsum("ij,ij->i", d1 - d0, d1 - d0))
-    if shape.name == "capsule" and _compiled():
-        from ..kernels.proximity import capsule_edge_prefix
-
-        out = np.empty(len(a0))
-        capsule_edge_prefix(np.ascontiguousarray(a0), np.ascontiguousarray(a1), np.ascontiguousarray(m), shift,
-                            np.ascontiguousarray(target, dtype=float), 0.5 * shape.height, shape.radius, steps, out)
-        return out
-
-    def h(sigma: np.ndarray) -> np.ndarray:
-        return shape.segment_minimum(a0 + sigma[:, None] * m, a1 + sigma[:, None] * m)[1] - sigma * shift
-
-    g = 0.5 * (np.sqrt(5.0) - 1.0)
-    lo, hi = np.zeros(len(a0)), np.ones(len(a0))
-    f_lo, f_hi = h(lo), h(hi)
-    m1, m2 = hi - g * (hi - lo), lo + g * (hi - lo)
-    f1, f2 = h(m1), h(m2)
-    for _ in range(steps):
-        left = f1 < f2                       # a minimiser in [lo, m2], else in [m1, hi]
-        hi, f_hi = np.where(left, m2, hi), np.where(left, f2, f_hi)
-        lo, f_lo = np.where(left, lo, m1), np.where(left, f_lo, f1)
-        n1 = np.where(left, hi - g * (hi - lo), m2)
-        n2 = np.where(left, m1, lo + g * (hi - lo))
-        fn = h(np.where(left, n1, n2))
-        f1, f2 = np.where(left, fn, f2), np.where(left, f1, fn)
-        m1, m2 = n1, n2
-    out = np.where(_convex_floor(lo, m1, m2, hi, f_lo, f1, f2, f_hi) >= target, 1.0, lo)
-    # h does not increase on [0, lo] (a minimiser lies beyond): where it is below the target at lo, its crossing
-    cross = np.flatnonzero((out < 1.0) & (f_lo < target))
-    if len(cross):
-        b_lo, b_hi = np.zeros(len(cross)), lo[cross].copy()
-        c0, c1, cm, cs, ct = a0[cross], a1[cross], m[cross], shift[cross], target[cross]
-        for _ in range(steps):
-            mid = 0.5 * (b_lo + b_hi)
-            ok = shape.segment_minimum(c0 + mid[:, None] * cm, c1 + mid[:, None] * cm)[1] - mid * cs >= ct
-            b_lo, b_hi = np.where(ok, mid, b_lo), np.where(ok, b_hi, mid)
-        out[cross] = b_lo
-    return out
-
-
-def _line(xa: np.ndarray, fa: np.ndarray, xb: np.ndarray, fb: np.ndarray, x: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(xb > xa, fa + (fb - fa) * (x - xa) / np.where(xb > xa, xb - xa, 1.0), np.minimum(fa, fb))
-
-
-def _convex_floor(lo, m1, m2, hi, f_lo, f1, f2, f_hi):
-    """A lower bound of a convex function's least value on ``[lo, hi]`` from its values at ``lo < m1 < m2 < hi``
-    (secants lie below a convex function outside the interval they span), per row."""
-    outer = np.minimum(np.minimum(f1, _line(m1, f1, m2, f2, lo)), np.minimum(f2, _line(m1, f1, m2, f2, hi)))
-    a = np.maximum(f1, _line(m2, f2, hi, f_hi, m1))
-    b = np.maximum(_line(lo, f_lo, m1, f1, m2), f2)
-    inner = np.minimum(a, b)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s01 = np.where(m1 > lo, (f1 - f_lo) / np.where(m1 > lo, m1 - lo, 1.0), 0.0)
-        s23 = np.where(hi > m2, (f_hi - f2) / np.where(hi > m2, hi - m2, 1.0), 0.0)
-        xc = (f2 - s23 * m2 - f1 + s01 * m1) / np.where(s01 != s23, s01 - s23, 1.0)
-    at = (s01 != s23) & (m1 < xc) & (xc < m2)
-    inner = np.where(at, np.minimum(inner, f1 + s01 * (xc - m1)), inner)
-    return np.minimum(outer, inner)
-
-
-def _compiled() -> bool:
-    try:
-        import numba  # noqa: F401
-    except ImportError:  # pragma: no cover - numba is a core dependency
-        return False
-    return COMPILED_PATHS
 
 
 def _advance(shape: Any, p0: np.ndarray, d: np.ndarray, target: np.ndarray, scale: np.ndarray,
