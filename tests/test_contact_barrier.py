@@ -241,6 +241,24 @@ def _stack(n=10, gap=0.02, method="barrier"):
             "collision": {"method": method, "thickness": TH, "self_collision": True}}
 
 
+def test_numpy_and_numba_agree_on_two_sheets_in_contact(monkeypatch):
+    """Self-contact, friction between layers and an obstacle in one scene, on both back-ends (the springs'
+    kernels, the assembly and the PCG: numpy or numba): the same states within the solves' tolerance, with the
+    layers in contact (pairs within the barrier's reach) by the end."""
+    pytest.importorskip("numba")
+    out = {}
+    for acc in ("numpy", "numba"):
+        monkeypatch.setenv("IMPLICIT_CLOTH_ACCELERATOR", acc)
+        scene = _stack(gap=0.006)
+        scene["collision"]["self_friction"] = 0.3
+        sim = ic.Simulator(scene)
+        sim.step(24)
+        out[acc] = sim.state
+        assert sim.cloth_contact.term(sim.state.x).pairs_within_reach(sim.state.x) > 0
+    assert np.abs(out["numpy"].x - out["numba"].x).max() < 1e-6
+    assert np.abs(out["numpy"].v - out["numba"].v).max() < 1e-4
+
+
 def test_two_sheets_dropped_on_a_sphere_keep_their_order_and_never_cross():
     """Two 10² sheets 2 cm apart dropped on a sphere, dt 1/60: no edge through a triangle at any step (the
     segment-triangle judge of test_self_collision), the upper sheet stays above the lower one along every
