@@ -153,16 +153,16 @@ class StepController:
             over = (eps1 > self.max_strain) & (eps1 > eps0)
             if np.any(over):
                 failed["strain"] = float(eps1[over].max())
-        gain = self._energy_gain(old, new, h, info.external_work)
+        gain = self._energy_gain(old, new, h, info.external_work, getattr(info, "contact_stored", 0.0))
         if gain is not None:
             failed["energy"] = gain
         return failed
 
-    def _energy_gain(self, old: State, new: State, h: float, work: float) -> float | None:
+    def _energy_gain(self, old: State, new: State, h: float, work: float, stored: float = 0.0) -> float | None:
         """The energy the substep gained beyond its external work ``work`` and the pins', J, when that is more
-        than the balance allows (``max_energy_growth`` of the energy it moves about) or not a number; None
-        otherwise."""
-        gain, e_step = self.measures.balance(old, new, h, work)
+        than the balance allows (``max_energy_growth`` of the energy it moves about, the contact potential's
+        ``stored`` energy included) or not a number; None otherwise."""
+        gain, e_step = self.measures.balance(old, new, h, work, stored)
         return None if gain <= self.max_energy_growth * e_step else gain
 
     def passes(self, old: State, new: State, h: float, work: float = 0.0) -> bool:

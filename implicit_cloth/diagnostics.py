@@ -19,9 +19,10 @@ treatment that does work. The allowance is a fraction of the energy the step
 itself moves about, from the two states only (never from the run's length)::
 
     allowance = max_energy_growth * E_step
-    E_step = max(K0, K1) + max(S0, S1) + |G1 - G0| + |W_ext|
+    E_step = max(K0, K1) + max(S0, S1) + |G1 - G0| + |W_ext| + max(U0, U1)
 
-(``K`` kinetic, ``S`` spring, ``G`` gravity energy), so a cloth at rest has
+(``K`` kinetic, ``S`` spring, ``G`` gravity energy, ``U`` the energy a contact
+potential stores, ``collision.method = "barrier"``), so a cloth at rest has
 almost none and a falling one the work gravity does in the step.
 
 Divergence bound
@@ -200,16 +201,18 @@ class StepMeasures:
         self._cache = self._cache[-1:] + [(s, out)]
         return out
 
-    def balance(self, old: Any, new: Any, h: float, obstacle_work: float = 0.0) -> tuple[float, float]:
+    def balance(self, old: Any, new: Any, h: float, obstacle_work: float = 0.0,
+                stored: float = 0.0) -> tuple[float, float]:
         """``(gain, E_step)`` of a step (module docstring): energy gained beyond the external work, and the
-        energy the step moves about, J."""
+        energy the step moves about, J (``stored``: the larger of the contact potential's stored energies at
+        the step's ends, which it moves about as it does the springs')."""
         k0, g0, s0, _, p0 = self(old)
         k1, g1, s1, _, p1 = self(new)
         w = 0.5 * h * (p0 + p1) + obstacle_work
         if self._pins_keyed:
             w += pin_step_work(self.model, old, new, self._pin_state(old), self._pin_state(new))
         gain = (k1 + g1 + s1) - (k0 + g0 + s0) - w
-        e_step = max(k0, k1) + max(s0, s1) + abs(g1 - g0) + abs(w)
+        e_step = max(k0, k1) + max(s0, s1) + abs(g1 - g0) + abs(w) + stored
         return gain, e_step
 
 

@@ -339,7 +339,13 @@ class Simulator:
         share = NEWTON_ENERGY_SHARE * self._energy_growth
 
         # the stored energies at the step's start, once (every Newton iterate's balance books them)
-        start = [f.energy(state.x) if f.conservative and not hasattr(f, "step_work") else 0.0 for f in terms]
+        start = [f.energy(state.x, f.t0) if hasattr(f, "t0") else f.energy(state.x) if f.conservative else 0.0
+                 for f in terms]
+        stored0 = float(sum(start))
+
+        def stored(x1: np.ndarray) -> float:
+            # the larger of the contact potential's stored energies at the step's ends (energy it moves about)
+            return max(stored0, float(sum(f.energy(x1) for f in terms if f.conservative)))
 
         def contact_work(x1: np.ndarray, v1: np.ndarray) -> float:
             # what the barriers gave back (and moving obstacles' work through them and friction)
@@ -356,6 +362,7 @@ class Simulator:
         t0 = time.perf_counter()
         if np.all(np.isfinite(new.x)):
             info.contact_work = contact_work(new.x, new.v)
+            info.contact_stored = stored(new.x)
         if col is not None and contacts is not None:
             depth = max((float(col.depths(k, new.x, new.t)[col.free].max(initial=0.0))
                          for k in range(len(col.obstacles))), default=0.0)
@@ -404,7 +411,8 @@ class Simulator:
                 old = self.state
                 new, info = self._substep(old, self.dt)
                 if self._checks_steps and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
-                    gain, e_step = self.measures.balance(old, new, self.dt, info.external_work)
+                    gain, e_step = self.measures.balance(old, new, self.dt, info.external_work,
+                                                         getattr(info, "contact_stored", 0.0))
                     if gain > self._energy_growth * e_step:
                         self.health.add("energy", new.t, gain)
             else:

@@ -168,6 +168,7 @@ class ObstacleBarrier(ConservativeTerm):
         self._geo_key: tuple[float, np.ndarray] | None = None
         #: the step's start and the energy stored there (:meth:`step_work`)
         self._start_energy: tuple[np.ndarray, float] | None = None
+        self._last_energy: tuple[float, np.ndarray, float] | None = None
         self._geo: list = []
 
     # ------------------------------------------------------------------ geometry
@@ -207,6 +208,7 @@ class ObstacleBarrier(ConservativeTerm):
         out = copy.copy(self)
         out.t, out.t0, out.x_start = float(t1), float(t0), np.asarray(x0)
         out._start_energy = None
+        out._last_energy = None
         return out
 
     def stencils(self, x: np.ndarray, reach: float | None = None, t: float | None = None,
@@ -262,8 +264,15 @@ class ObstacleBarrier(ConservativeTerm):
 
     # ------------------------------------------------------------------ the Force interface
     def energy(self, x: np.ndarray, t: float | None = None) -> float:
-        """The stored energy at ``x``, the obstacles at their pose at ``t`` (default the potential's)."""
-        return float(sum(np.dot(st.kappa, barrier.value(st.g, self.dhat)) for st in self.stencils(x, t=t)))
+        """The stored energy at ``x``, the obstacles at their pose at ``t`` (default the potential's); the last
+        answer kept (the balance and its allowance ask for the same iterate)."""
+        t = self.t if t is None else t
+        last = self._last_energy
+        if last is not None and last[0] == t and np.array_equal(last[1], x):
+            return last[2]
+        e = float(sum(np.dot(st.kappa, barrier.value(st.g, self.dhat)) for st in self.stencils(x, t=t)))
+        self._last_energy = (t, x.copy(), e)
+        return e
 
     def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:
         for st in self.stencils(x):

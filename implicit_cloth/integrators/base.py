@@ -101,6 +101,9 @@ class StepInfo:
     #: the work the contact potential did on the cloth in the step (``collision.method = "barrier"``),
     #: ``U_c(x0) - U_c(x1)``, J: the energy balance books the energy the barrier stores or gives back
     contact_work: float = 0.0
+    #: the larger of the energies the contact potential stores at the step's start and end, J: energy the step
+    #: moves about, as the springs' is (the balance's allowance is a share of it)
+    contact_stored: float = 0.0
 
     @property
     def balance(self) -> float:
