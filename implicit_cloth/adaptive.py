@@ -153,7 +153,7 @@ class StepController:
             over = (eps1 > self.max_strain) & (eps1 > eps0)
             if np.any(over):
                 failed["strain"] = float(eps1[over].max())
-        gain = self._energy_gain(old, new, h, info.external_work, getattr(info, "contact_stored", 0.0))
+        gain = self._energy_gain(old, new, h, info.external_work, info.contact_stored)
         if gain is not None:
             failed["energy"] = gain
         return failed

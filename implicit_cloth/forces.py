@@ -80,6 +80,9 @@ class ConservativeTerm:
     dissipative = False
     elastic = False
 
+    def energy(self, x: np.ndarray) -> float:  # pragma: no cover - abstract
+        raise NotImplementedError
+
     def gradient(self, x: np.ndarray, t: float, out: np.ndarray) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
 
@@ -99,6 +102,11 @@ class ConservativeTerm:
 
     def bind(self, system: Any) -> None:
         pass
+
+    def start_energy(self, x0: np.ndarray) -> float:
+        """The energy stored at the step's start ``x0``, J (a term whose potential moves in the step, a moving
+        obstacle's barrier, gives it against its start)."""
+        return self.energy(x0)
 
 
 class DissipativeTerm:

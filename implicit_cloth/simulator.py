@@ -339,8 +339,7 @@ class Simulator:
         share = NEWTON_ENERGY_SHARE * self._energy_growth
 
         # the stored energies at the step's start, once (every Newton iterate's balance books them)
-        start = [f.energy(state.x, f.t0) if hasattr(f, "t0") else f.energy(state.x) if f.conservative else 0.0
-                 for f in terms]
+        start = [f.start_energy(state.x) if f.conservative else 0.0 for f in terms]
         stored0 = float(sum(start))
 
         def stored(x1: np.ndarray) -> float:
@@ -411,8 +410,7 @@ class Simulator:
                 old = self.state
                 new, info = self._substep(old, self.dt)
                 if self._checks_steps and np.all(np.isfinite(new.x)) and np.all(np.isfinite(new.v)):
-                    gain, e_step = self.measures.balance(old, new, self.dt, info.external_work,
-                                                         getattr(info, "contact_stored", 0.0))
+                    gain, e_step = self.measures.balance(old, new, self.dt, info.external_work, info.contact_stored)
                     if gain > self._energy_growth * e_step:
                         self.health.add("energy", new.t, gain)
             else:

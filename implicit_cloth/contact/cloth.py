@@ -45,7 +45,7 @@ class ClothBarrier(ConservativeTerm):
     name = "self_contact"
 
     def __init__(self, mesh: Any, potential: Any, xi: float, dhat: float, x0: np.ndarray,
-                 primitives: "_Primitives | None" = None) -> None:
+                 primitives: "_Primitives") -> None:
         import ipctk
 
         self._ipc = ipctk
@@ -60,7 +60,7 @@ class ClothBarrier(ConservativeTerm):
         #: the last iterate's safe distances and the radius they were gathered in (:meth:`_safe_distances`)
         self._safe_key: tuple[float, np.ndarray] | None = None
         self._safe = np.zeros(0)
-        self._primitives = primitives if primitives is not None else _Primitives(mesh)
+        self._primitives = primitives
 
     def _collisions_at(self, x: np.ndarray) -> Any:
         """The pairs within reach at ``x`` (cached for the last ``x``)."""

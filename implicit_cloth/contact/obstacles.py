@@ -422,24 +422,22 @@ class ObstacleBarrier(ConservativeTerm):
             a0, a1, ends, half, low_all = edge_geo
             # only edges the move could bring near: gap lower bound minus the move below (1 - SAFE) of a gap
             cand = np.flatnonzero(ends - half - fastest < self.dhat)
-            speed_c = np.maximum(vspeed[e[cand, 0]], vspeed[e[cand, 1]])
-            keep = (speed_c > 0) & (ends[cand] - half[cand] - speed_c < self.dhat)
-            cand = cand[keep]
+            speed = np.maximum(vspeed[e[cand, 0]], vspeed[e[cand, 1]])     # each candidate's faster end
+            keep = (speed > 0) & (ends[cand] - half[cand] - speed < self.dhat)
+            cand, speed = cand[keep], speed[keep]
             if not len(cand):
                 continue
-            speed = np.zeros(len(e))
-            speed[cand] = speed_c[keep]
             unknown = cand[np.isnan(low_all[cand])]        # each edge's least distance at x, once an iterate
             if len(unknown):
                 low_all[unknown] = ob.shape.segment_minimum(a0[unknown], a1[unknown])[1]
             g0 = low_all[cand] - self.xi
             floor = _path_floor(g0, self.dhat, first)           # as for the vertices (fractions)
             target = self.xi + floor
-            lin = g0 - speed[cand] > floor                       # 1-Lipschitz: the whole move is safe
+            lin = g0 - speed > floor                             # 1-Lipschitz: the whole move is safe
             check = np.flatnonzero(~lin)
             if not len(check):
                 continue
-            k = cand[check]
+            k, speed_k = cand[check], speed[check]
             d0 = self._local(ob, x[e[k, 0]] + dx[e[k, 0]]) - a0[k]
             d1 = self._local(ob, x[e[k, 1]] + dx[e[k, 1]]) - a1[k]
             frac = np.zeros(len(k))
@@ -450,7 +448,7 @@ class ObstacleBarrier(ConservativeTerm):
                 q1 = a1[k[live]] + frac[live, None] * d1[live]
                 _, low = ob.shape.segment_minimum(q0, q1)
                 gap = low - target[check[live]]
-                step = np.maximum(gap, 0.0) / speed[k[live]]
+                step = np.maximum(gap, 0.0) / speed_k[live]
                 frac[live] = np.minimum(frac[live] + step, 1.0 + 1e-12)
                 live = live[(gap > tol[live]) & (frac[live] <= 1.0)]
                 if not len(live):
@@ -560,6 +558,14 @@ class ObstacleBarrier(ConservativeTerm):
         ``p - T0 T1^-1 p`` (0 for an obstacle that does not move)."""
         return p - ob.motion.to_world(ob.motion.to_local(p, self.t), self.t0)
 
+    def start_energy(self, x0: np.ndarray) -> float:
+        """The energy stored at the step's start ``x0`` against the obstacles' poses then, J; once a step (every
+        iterate's balance asks)."""
+        e0 = self._start_energy
+        if e0 is None or e0[0] is not x0:
+            e0 = self._start_energy = (x0, self.energy(x0, self.t0))
+        return e0[1]
+
     def step_work(self, x0: np.ndarray, x1: np.ndarray, v1: np.ndarray, h: float) -> float:
         """The energy the step's balance books for the barrier, J: what it gave back,
         ``U(x0; T0) - U(x1; T1)`` (each against the obstacles' pose at its time), plus the work the moving
@@ -567,10 +573,7 @@ class ObstacleBarrier(ConservativeTerm):
         obstacle, so moving the obstacle by ``delta`` at a contact changes it by ``F . delta`` (``F =
         -dU/dx`` the contact force on the cloth), here the end-of-step force times the step's displacement of
         the obstacle's material point at the contact (backward Euler's quadrature)."""
-        e0 = self._start_energy
-        if e0 is None or e0[0] is not x0:       # the step's start, once a step (every iterate's balance asks)
-            e0 = self._start_energy = (x0, self.energy(x0, self.t0))
-        work = e0[1] - self.energy(x1)
+        work = self.start_energy(x0) - self.energy(x1)
         if not any(self.moving):
             return work
         for st in self.stencils(x1):

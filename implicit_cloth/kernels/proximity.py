@@ -110,36 +110,16 @@ def segment_distance2(p1, q1, p2, q2):
     return _dot(dx, dy, dz, dx, dy, dz)
 
 
-@njit(cache=True)
-def _grid(points, lo, h, dims):
-    """Counting sort of ``points`` into the cells of a ``dims`` grid from ``lo`` with cell size ``h``: the order
-    and each cell's start in it (``start[c]:start[c + 1]``)."""
-    n = points.shape[0]
-    nc = dims[0] * dims[1] * dims[2]
-    cell = np.empty(n, dtype=np.int64)
-    count = np.zeros(nc + 1, dtype=np.int64)
-    for i in range(n):
-        ix = min(max(int((points[i, 0] - lo[0]) / h), 0), dims[0] - 1)
-        iy = min(max(int((points[i, 1] - lo[1]) / h), 0), dims[1] - 1)
-        iz = min(max(int((points[i, 2] - lo[2]) / h), 0), dims[2] - 1)
-        c = (ix * dims[1] + iy) * dims[2] + iz
-        cell[i] = c
-        count[c + 1] += 1
-    for c in range(nc):
-        count[c + 1] += count[c]
-    start = count.copy()
-    order = np.empty(n, dtype=np.int64)
-    fill = count[:nc].copy()
-    for i in range(n):
-        order[fill[cell[i]]] = i
-        fill[cell[i]] += 1
-    return order, start
+@njit(cache=True, inline="always")
+def _cell(v, lo, h, dim):
+    """The grid's cell along one axis that holds ``v`` (clamped to the grid)."""
+    return min(max(int((v - lo) / h), 0), dim - 1)
 
 
 @njit(cache=True)
 def _cells(a, b, lo, h, dim):
     """The grid's cells (first, last) along one axis that the interval ``[a, b]`` meets."""
-    return min(max(int((a - lo) / h), 0), dim - 1), min(max(int((b - lo) / h), 0), dim - 1)
+    return _cell(a, lo, h, dim), _cell(b, lo, h, dim)
 
 
 @njit(cache=True)
@@ -147,8 +127,8 @@ def clearance(x, faces, edges, radius, lo, h, dims, out):
     """Each vertex's least distance (N,) to the primitives of the cloth not adjacent to it, capped at ``radius``,
     into ``out``: over every point-triangle pair (a vertex and a triangle not incident to it) and edge-edge pair
     (two edges sharing no vertex) nearer than ``radius`` at ``x`` (N, 3), each pair's distance taken by all of its
-    four vertices. The grid: origin ``lo``, cell size ``h``, ``dims`` cells (vertices and edges' midpoints binned;
-    each triangle's and edge's box, grown by the radius, searched)."""
+    four vertices. The grid: origin ``lo``, cell size ``h``, ``dims`` cells (vertices and edges' boxes binned; each
+    triangle's and edge's box, grown by the radius, searched)."""
     for i in range(out.shape[0]):
         out[i] = radius
     _point_triangle_pass(x, faces, radius, lo, h, dims, out)
@@ -159,7 +139,7 @@ def clearance(x, faces, edges, radius, lo, h, dims, out):
 def _point_triangle_pass(x, faces, radius, lo, h, dims, out):
     """:func:`clearance`'s point-triangle pairs: the vertices binned, each triangle's grown box searched."""
     r2 = radius * radius
-    order, start = _grid(x, lo, h, dims)
+    start, order = _bin_boxes(np.hstack((x, x)), lo, h, dims)          # a vertex: a box of no extent
     for t in range(faces.shape[0]):
         a, b, c = faces[t, 0], faces[t, 1], faces[t, 2]
         bx0 = min(x[a, 0], x[b, 0], x[c, 0]) - radius
@@ -193,8 +173,8 @@ def _point_triangle_pass(x, faces, radius, lo, h, dims, out):
 
 @njit(cache=True)
 def _bin_boxes(box, lo, h, dims):
-    """Boxes (K, 6: low corner, high corner) binned into every cell of the grid they meet: each cell's entries
-    are ``entries[start[c]:start[c + 1]]``."""
+    """Boxes (K, 6: low corner, high corner) binned into every cell of the grid they meet (a counting sort):
+    each cell's entries are ``entries[start[c]:start[c + 1]]``."""
     n = box.shape[0]
     nc = dims[0] * dims[1] * dims[2]
     span = np.empty((n, 6), dtype=np.int64)
@@ -230,11 +210,6 @@ def _meets_here(box, i, j, radius, ix, iy, iz, lo, h, dims):
     return (_cell(max(box[j, 0], box[i, 0] - radius), lo[0], h, dims[0]) == ix
             and _cell(max(box[j, 1], box[i, 1] - radius), lo[1], h, dims[1]) == iy
             and _cell(max(box[j, 2], box[i, 2] - radius), lo[2], h, dims[2]) == iz)
-
-
-@njit(cache=True, inline="always")
-def _cell(v, lo, h, dim):
-    return min(max(int((v - lo) / h), 0), dim - 1)
 
 
 @njit(cache=True)
