@@ -306,7 +306,7 @@ def test_numpy_path_and_core_import_do_not_import_numba(hanging_scene):
 @pytest.mark.parametrize("damping", [True, False])
 @pytest.mark.parametrize("kind", ["grid", "mesh"])
 def test_numba_spring_force_equals_numpy_path(tmp_path, kind, damping):
-    """``Springs.force`` (what the line searches, the energy balance and the explicit methods evaluate) on the
+    """``Springs.force`` and ``Springs.dissipation`` (what the line searches, the energy balance and the explicit methods evaluate) on the
     numba path is one compiled pass with numpy's arithmetic: numpy's force, stretched, compressed and at zero
     length, damped or not, added to what the array held (bit for bit where it was written; asserted to round-off,
     since numpy's einsum may sum three products in another order on another processor)."""
@@ -328,6 +328,9 @@ def test_numba_spring_force_equals_numpy_path(tmp_path, kind, damping):
         assert np.all(np.isfinite(got)), name
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-14 * np.abs(ref).max(), err_msg=f"{kind} {name}")
         assert not np.array_equal(got, start)
+        # the damping's dissipation (every point of a line search evaluates it): one compiled pass, numpy's sum
+        d0, d1 = s0.dissipation(x, v, 0.0), s1.dissipation(x, v, 0.0)
+        assert (d0 > 0.0) == damping and d1 == pytest.approx(d0, rel=1e-12, abs=0.0), (kind, name)
 
 
 def test_spring_force_kernels_agree_at_every_thread_count():

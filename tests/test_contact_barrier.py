@@ -385,6 +385,33 @@ def test_the_self_contact_bound_lets_a_sheet_translate_and_keeps_still_vertices_
     assert np.all(np.linalg.norm(out, axis=1) <= np.linalg.norm(dx, axis=1) + 1e-15)
 
 
+def test_the_self_barrier_skips_its_collision_set_only_where_the_toolkit_finds_no_pair():
+    """Where the last safe distances prove no pair within the barrier's reach (each pair's distance changes by at
+    most twice the longest move beside the common translation), the barrier skips the toolkit's collision set:
+    at every such point the toolkit's own set, built afresh, is empty; the skip is taken for small moves of
+    layers apart, and never where the layers are within reach."""
+    ipctk = pytest.importorskip("ipctk")
+    rng = np.random.default_rng(5)
+    skipped = kept = touching = 0
+    for gap in (4 * TH, 0.8 * TH):
+        sim = ic.Simulator(_stack(n=8, gap=gap))
+        x = sim.model.rest_positions.copy()
+        term = sim.cloth_contact.term(x)
+        term.filter_move(x, 0.02 * rng.standard_normal(x.shape))      # the safe distances at x, 2 cm around
+        for scale in (1e-4, 1e-3, 3e-3, 1e-2):
+            y = x + [0.1, -0.2, 0.05] + scale * rng.standard_normal(x.shape)
+            fresh = ipctk.NormalCollisions()
+            fresh.build(term.mesh, np.asfortranarray(y), term.dhat, term.xi)
+            if term._beyond_reach(y):
+                skipped += 1
+                assert len(fresh) == 0 and term.energy(y) == 0.0, (gap, scale)
+            else:
+                kept += 1
+                touching += len(fresh) > 0
+                assert term.energy(y) == pytest.approx(float(term.potential(fresh, term.mesh, np.asfortranarray(y))))
+    assert skipped >= 2 and touching >= 2
+
+
 def test_the_self_contact_bound_survives_the_toolkit_s_collinear_edges():
     """A flat sheet's rows and diagonals are edges collinear to rounding. The IPC Toolkit (1.6) measures some
     such pairs (here with in-plane noise of 1e-10 m) by their lines' distance, 0, so its safe distance for their

@@ -67,9 +67,24 @@ class ClothBarrier(ConservativeTerm):
         key = (x.shape[0], x.tobytes())
         if self._key != key:
             c = self._ipc.NormalCollisions()
-            c.build(self.mesh, _f(x), self.dhat, self.xi)
+            if not self._beyond_reach(x):
+                c.build(self.mesh, _f(x), self.dhat, self.xi)
             self._collisions, self._key = c, key
         return self._collisions
+
+    def _beyond_reach(self, x: np.ndarray) -> bool:
+        """Whether the last safe distances (:meth:`_safe_distances`, at ``x_ref``) prove that no pair of
+        non-adjacent primitives is within the barrier's reach ``xi + dhat`` at ``x``: every pair's distance at
+        ``x_ref`` is at least the least safe distance plus ``xi``, and a pair's distance changes by at most twice
+        the longest move of a vertex beside the cloth's common translation (which moves no pair). The line
+        search's points and the iterates of a cloth far from itself skip the toolkit's collision set."""
+        key = self._safe_key
+        if key is None or key[1].shape != x.shape or not len(x):
+            return False
+        rel = x - key[1]
+        rel -= rel.mean(axis=0)
+        reach = float(np.sqrt(np.max(np.einsum("ij,ij->i", rel, rel))))
+        return float(self._safe.min()) - 2.0 * reach > self.dhat
 
     def pairs_within_reach(self, x: np.ndarray) -> int:
         return len(self._collisions_at(x))

@@ -162,6 +162,12 @@ class Springs:
         damping force)."""
         if not self.dissipative:
             return 0.0
+        if self.backend.compiled:   # one compiled pass (every point of a step's line search evaluates it)
+            from ..kernels.springs import spring_dissipation
+
+            c = np.ascontiguousarray
+            return float(spring_dissipation(c(x, dtype=float), c(v, dtype=float), *self._plain[:2],
+                                            self._plain[3], float(self._tiny)))
         d, l, u, ok, inv = self._frame(x)
         s = np.einsum("ij,ij->i", v[self.j] - v[self.i], u)
         return 0.5 * float(np.dot(self.kd, s * s))

@@ -278,6 +278,27 @@ def spring_lengths(x, si, sj, out):
         out[s] = spring_vector(x, si[s], sj[s])[3]
 
 
+@njit(cache=True)
+def spring_dissipation(x, v, si, sj, kd, tiny):
+    """Rayleigh's ``sum_s kd ((v_j - v_i) . u)^2 / 2`` at the geometry ``x``, W (the numpy path's
+    ``Springs.dissipation``, one pass; ``u = 0`` where ``l <= tiny``)."""
+    total = 0.0
+    for s in range(len(si)):
+        if kd[s] == 0.0:
+            continue
+        i = si[s]
+        j = sj[s]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        l = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if l <= tiny:
+            continue
+        w = ((v[j, 0] - v[i, 0]) * d0 + (v[j, 1] - v[i, 1]) * d1 + (v[j, 2] - v[i, 2]) * d2) / l
+        total += kd[s] * w * w
+    return 0.5 * total
+
+
 @njit(cache=True, inline="always")
 def _dot3(a0, a1, a2, b0, b1, b2):
     """``a . b`` summed as numpy's ``einsum("ij,ij->i")`` sums three products here, ``(a0 b0 + a2 b2) + a1 b1``
