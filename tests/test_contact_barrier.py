@@ -12,7 +12,7 @@ import pytest
 from test_forces import check_force
 
 import implicit_cloth as ic
-from implicit_cloth.contact import ObstacleFriction
+from implicit_cloth.contact import ObstacleFriction, barrier
 from implicit_cloth.contact.obstacles import Contacts
 from implicit_cloth.errors import SceneError
 
@@ -153,6 +153,40 @@ def test_fast_sheet_onto_a_thin_rod_never_crosses_it():
     # the sheet was stopped by the rod (between its vertex rows: the edges across it hold it): it hangs over it
     z = sim.state.x[:, 2]
     assert z.max() > 0.005 and z.min() < -0.02 and abs(z.max()) < 0.05
+
+
+@pytest.mark.parametrize("obstacle", ["rod", "sphere"])
+def test_the_obstacle_barrier_measures_only_what_may_be_within_reach(obstacle):
+    """The obstacle barrier's energy at a line search's points measures only the vertices and edges that the last
+    iterate's gaps, less their moves since, leave within reach (``phi`` is 1-Lipschitz): the same energy, to the
+    bit, as measuring every primitive, over a sheet on a thin rod (its edges felt) and on a sphere (its vertices
+    alone), from an iterate held twice
+    the reach above it to points lowered into reach (which the iterate's gaps alone would miss) and moved at
+    random; and most of the sheet is not measured."""
+    rod = {"shape": "capsule", "radius": 0.005, "height": 1.0, "center": [0.0, 0.0, 0.0], "axis": [1.0, 0.0, 0.0],
+           "friction": 0.2}
+    shape, top = (rod, 0.05) if obstacle == "rod" else (SPHERE, 0.25)
+    sim = ic.Simulator(_scene([shape], n=32, center=(0.0, 0.0, top)))
+    sim.step(10)
+    s, h = sim.state, sim.dt
+    term = sim.collider.terms(sim.collider.detect(s.x, s.t, h), s.x, s.t, h)[0]
+    assert term.name == "contact" and term.edged[0] == (obstacle == "rod")
+    dhat = term.dhat
+    least = min(float(st.g.min(initial=np.inf)) for st in term.stencils(s.x, reach=1.0))
+    x = s.x + [0.0, 0.0, 2.0 * dhat - least]           # the iterate: its nearest primitive twice the reach off
+    rng = np.random.default_rng(11)
+    term.filter_move(x, 1e-4 * rng.standard_normal(x.shape))        # the iterate's geometry
+    moves = [np.tile([0.0, 0.0, -dz * dhat], (len(x), 1)) for dz in (0.5, 1.2, 1.5)]
+    moves += [scale * rng.standard_normal(x.shape) for scale in (1e-4, 1e-3, 1e-2)]
+    stored = skipped = 0
+    for move in moves:
+        y = x + move
+        every = float(sum(np.dot(st.kappa, barrier.value(st.g, dhat)) for st in term.stencils(y)))
+        assert term.energy(y) == every, float(np.abs(move).max())
+        (vsel, esel), = term._within(y, term.t)
+        stored += 0.0 < every < np.inf
+        skipped += (not vsel.all()) and (esel is None or not esel.all())
+    assert stored >= 2 and skipped >= 4
 
 
 def _drape(accelerator, monkeypatch, n=12, steps=60):

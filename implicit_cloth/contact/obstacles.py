@@ -212,29 +212,37 @@ class ObstacleBarrier(ConservativeTerm):
         return out
 
     def stencils(self, x: np.ndarray, reach: float | None = None, t: float | None = None,
-                 hessian: bool = False) -> list[_Stencil]:
+                 hessian: bool = False, within: list | None = None) -> list[_Stencil]:
         """The vertex and edge primitives within ``reach`` (default the barrier's) of each obstacle at ``x``,
         the obstacles at their pose at ``t`` (default the potential's, the step's end); ``hessian``: with the
-        distance's Hessian at the vertices, where the shape gives it."""
+        distance's Hessian at the vertices, where the shape gives it. ``within`` (:meth:`_within`): per obstacle,
+        the free vertices and the edges that may be within the barrier's reach; the others are not measured."""
         reach = self.dhat if reach is None else reach
         out = []
         for j, (ob, edged) in enumerate(zip(self.obstacles, self.edged)):
-            loc = self._local(ob, x, t)
-            phi, n, c = ob.shape.closest(loc[self.free])
+            vsel, esel = (None, None) if within is None else within[j]
+            free = self.free if vsel is None else self.free[vsel]
+            kappa = self.kappa if vsel is None else self.kappa[vsel]
+            loc = self._local(ob, x, t) if vsel is None else None
+            pts = loc[free] if loc is not None else self._local(ob, x[free], t)
+            phi, n, c = ob.shape.closest(pts)
             g = phi - self.xi
             near = g < reach
             hess = None
             if hessian and np.any(near):
-                H = ob.shape.distance_hessian(loc[self.free][near], n[near], c[near])
+                H = ob.shape.distance_hessian(pts[near], n[near], c[near])
                 if H is not None:
                     R = ob.motion.pose(self.t if t is None else t)[1]
                     hess = np.einsum("ab,kbc,dc->kad", R, H, R)
-            out.append(_Stencil(self.free[near, None], np.ones((int(near.sum()), 1)),
-                                self._world_normal(ob, n[near], t), g[near], self.kappa[near], j, hess))
+            out.append(_Stencil(free[near, None], np.ones((int(near.sum()), 1)),
+                                self._world_normal(ob, n[near], t), g[near], kappa[near], j, hess))
             if not len(self.edges) or not edged:
                 continue
-            e = self.edges
-            a0, a1 = loc[e[:, 0]], loc[e[:, 1]]
+            e = self.edges if esel is None else self.edges[esel]
+            if not len(e):
+                continue
+            a0 = loc[e[:, 0]] if loc is not None else self._local(ob, x[e[:, 0]], t)
+            a1 = loc[e[:, 1]] if loc is not None else self._local(ob, x[e[:, 1]], t)
             # phi is 1-Lipschitz: an edge is at least (nearer end's phi) - (half its length) away
             ends = np.minimum(ob.shape.distance(a0), ob.shape.distance(a1)) - self.xi
             half = 0.5 * np.sqrt(np.einsum("ij,ij->i", a1 - a0, a1 - a0))
@@ -249,8 +257,31 @@ class ObstacleBarrier(ConservativeTerm):
             # drop the edge's energy where its nearest point reaches an end, a jump (energy from nowhere)
             inner = g_e < reach
             k = cand[inner]
+            ke = self.kappa_edge[k] if esel is None else self.kappa_edge[np.flatnonzero(esel)[k]]
             out.append(_Stencil(e[k], np.stack([1.0 - s[inner], s[inner]], axis=1),
-                                self._world_normal(ob, n_e[inner], t), g_e[inner], self.kappa_edge[k], j))
+                                self._world_normal(ob, n_e[inner], t), g_e[inner], ke, j))
+        return out
+
+    def _within(self, x: np.ndarray, t: float) -> list | None:
+        """Per obstacle, masks of the free vertices and of the edges that may be within the barrier's reach at
+        ``x``, from the last iterate's geometry (:meth:`_geometry`, the same pose): ``phi`` is 1-Lipschitz, so a
+        vertex whose gap there less its move since is at least the reach, or an edge whose lower bound there
+        (nearer end's gap less half its length) less its faster end's move is, stores no energy. None without
+        that geometry (everything is measured)."""
+        key = self._geo_key
+        if key is None or key[0] != t or key[1].shape != x.shape:
+            return None
+        d = x - key[1]
+        move = np.sqrt(np.einsum("ij,ij->i", d, d))
+        out = []
+        for g0, _, edge_geo in self._geo:
+            vsel = g0 - move[self.free] < self.dhat
+            esel = None
+            if edge_geo is not None:
+                _, _, ends, half, _ = edge_geo
+                e = self.edges
+                esel = ends - half - np.maximum(move[e[:, 0]], move[e[:, 1]]) < self.dhat
+            out.append((vsel, esel))
         return out
 
     def gaps(self, x: np.ndarray, t: float | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -270,7 +301,8 @@ class ObstacleBarrier(ConservativeTerm):
         last = self._last_energy
         if last is not None and last[0] == t and np.array_equal(last[1], x):
             return last[2]
-        e = float(sum(np.dot(st.kappa, barrier.value(st.g, self.dhat)) for st in self.stencils(x, t=t)))
+        e = float(sum(np.dot(st.kappa, barrier.value(st.g, self.dhat))
+                      for st in self.stencils(x, t=t, within=self._within(x, t))))
         self._last_energy = (t, x.copy(), e)
         return e
 
