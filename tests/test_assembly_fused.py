@@ -306,10 +306,11 @@ def test_numpy_path_and_core_import_do_not_import_numba(hanging_scene):
 @pytest.mark.parametrize("damping", [True, False])
 @pytest.mark.parametrize("kind", ["grid", "mesh"])
 def test_numba_spring_force_equals_numpy_path(tmp_path, kind, damping):
-    """``Springs.force`` and ``Springs.dissipation`` (what the line searches, the energy balance and the explicit methods evaluate) on the
+    """``Springs.force`` (what the line searches, the energy balance and the explicit methods evaluate) on the
     numba path is one compiled pass with numpy's arithmetic: numpy's force, stretched, compressed and at zero
     length, damped or not, added to what the array held (bit for bit where it was written; asserted to round-off,
-    since numpy's einsum may sum three products in another order on another processor)."""
+    since numpy's einsum may sum three products in another order on another processor). ``Springs.dissipation``
+    (every point of a line search) is one compiled pass too: numpy's to round-off."""
     scene = _grid_scene(damping) if kind == "grid" else _mesh_scene(tmp_path, damping)
     models = {}
     for path in PATHS:
