@@ -223,8 +223,12 @@ class ObstacleBarrier(ConservativeTerm):
             vsel, esel = (None, None) if within is None else within[j]
             free = self.free if vsel is None else self.free[vsel]
             kappa = self.kappa if vsel is None else self.kappa[vsel]
-            loc = self._local(ob, x, t) if vsel is None else None
-            pts = loc[free] if loc is not None else self._local(ob, x[free], t)
+            loc = self._local(ob, x, t) if within is None else None     # every vertex's, or the rows asked for
+
+            def at(rows: np.ndarray, ob: Obstacle = ob, loc: np.ndarray | None = loc) -> np.ndarray:
+                return loc[rows] if loc is not None else self._local(ob, x[rows], t)
+
+            pts = at(free)
             phi, n, c = ob.shape.closest(pts)
             g = phi - self.xi
             near = g < reach
@@ -238,11 +242,11 @@ class ObstacleBarrier(ConservativeTerm):
                                 self._world_normal(ob, n[near], t), g[near], kappa[near], j, hess))
             if not len(self.edges) or not edged:
                 continue
-            e = self.edges if esel is None else self.edges[esel]
-            if not len(e):
+            eidx = np.arange(len(self.edges)) if esel is None else np.flatnonzero(esel)
+            if not len(eidx):
                 continue
-            a0 = loc[e[:, 0]] if loc is not None else self._local(ob, x[e[:, 0]], t)
-            a1 = loc[e[:, 1]] if loc is not None else self._local(ob, x[e[:, 1]], t)
+            e = self.edges[eidx]
+            a0, a1 = at(e[:, 0]), at(e[:, 1])
             # phi is 1-Lipschitz: an edge is at least (nearer end's phi) - (half its length) away
             ends = np.minimum(ob.shape.distance(a0), ob.shape.distance(a1)) - self.xi
             half = 0.5 * np.sqrt(np.einsum("ij,ij->i", a1 - a0, a1 - a0))
@@ -257,9 +261,8 @@ class ObstacleBarrier(ConservativeTerm):
             # drop the edge's energy where its nearest point reaches an end, a jump (energy from nowhere)
             inner = g_e < reach
             k = cand[inner]
-            ke = self.kappa_edge[k] if esel is None else self.kappa_edge[np.flatnonzero(esel)[k]]
             out.append(_Stencil(e[k], np.stack([1.0 - s[inner], s[inner]], axis=1),
-                                self._world_normal(ob, n_e[inner], t), g_e[inner], ke, j))
+                                self._world_normal(ob, n_e[inner], t), g_e[inner], self.kappa_edge[eidx[k]], j))
         return out
 
     def _within(self, x: np.ndarray, t: float) -> list | None:
@@ -469,23 +472,11 @@ class ObstacleBarrier(ConservativeTerm):
             check = np.flatnonzero(~lin)
             if not len(check):
                 continue
-            k, speed_k = cand[check], speed[check]
+            k = cand[check]
             d0 = self._local(ob, x[e[k, 0]] + dx[e[k, 0]]) - a0[k]
             d1 = self._local(ob, x[e[k, 1]] + dx[e[k, 1]]) - a1[k]
-            frac = np.zeros(len(k))
-            live = np.arange(len(k))
-            tol = 0.01 * (g0[check] + self.xi)
-            for _ in range(ADVANCE_ITERATIONS):
-                q0 = a0[k[live]] + frac[live, None] * d0[live]
-                q1 = a1[k[live]] + frac[live, None] * d1[live]
-                _, low = ob.shape.segment_minimum(q0, q1)
-                gap = low - target[check[live]]
-                step = np.maximum(gap, 0.0) / speed_k[live]
-                frac[live] = np.minimum(frac[live] + step, 1.0 + 1e-12)
-                live = live[(gap > tol[live]) & (frac[live] <= 1.0)]
-                if not len(live):
-                    break
-            f = np.clip(frac, 0.0, 1.0)
+            f = _edge_advance(ob.shape, a0[k], a1[k], d0, d1, target[check], speed[check],
+                              0.01 * (g0[check] + self.xi))
             short = f < 1.0
             if np.any(short):
                 bad_e.append(e[k[short]])
@@ -655,6 +646,22 @@ def needs_edges(shape: Any, longest: float, xi: float) -> bool:
         return False
     radius = getattr(shape, "radius", 0.0) if shape.name in ("sphere", "capsule") else 0.0
     return radius <= 0.0 or longest * longest / (8.0 * radius) > 0.5 * xi
+
+
+def _edge_advance(shape: Any, a0: np.ndarray, a1: np.ndarray, d0: np.ndarray, d1: np.ndarray, target: np.ndarray,
+                  speed: np.ndarray, tol: np.ndarray) -> np.ndarray:
+    """Per edge, the fraction of its ends' moves ``d0, d1`` (local) that conservative advancement of its gap
+    reaches before ``target`` (the gap changes no faster than the faster end moves, ``speed``), within ``tol``."""
+    frac = np.zeros(len(a0))
+    live = np.arange(len(a0))
+    for _ in range(ADVANCE_ITERATIONS):
+        _, low = shape.segment_minimum(a0[live] + frac[live, None] * d0[live], a1[live] + frac[live, None] * d1[live])
+        gap = low - target[live]
+        frac[live] = np.minimum(frac[live] + np.maximum(gap, 0.0) / speed[live], 1.0 + 1e-12)
+        live = live[(gap > tol[live]) & (frac[live] <= 1.0)]
+        if not len(live):
+            break
+    return np.clip(frac, 0.0, 1.0)
 
 
 def _advance(shape: Any, p0: np.ndarray, d: np.ndarray, target: np.ndarray, scale: np.ndarray,

@@ -166,8 +166,8 @@ class Springs:
             from ..kernels.springs import spring_dissipation
 
             c = np.ascontiguousarray
-            return float(spring_dissipation(c(x, dtype=float), c(v, dtype=float), *self._plain[:2],
-                                            self._plain[3], float(self._tiny)))
+            i, j, _, kd, _ = self._plain
+            return float(spring_dissipation(c(x, dtype=float), c(v, dtype=float), i, j, kd, float(self._tiny)))
         d, l, u, ok, inv = self._frame(x)
         s = np.einsum("ij,ij->i", v[self.j] - v[self.i], u)
         return 0.5 * float(np.dot(self.kd, s * s))
