@@ -325,6 +325,9 @@ def specs(args: argparse.Namespace, mesh_dir: Path) -> list[dict]:
     if args.contact_tolerance:
         for spec in out:
             spec["scene"].setdefault("solver", {})["contact_tolerance"] = args.contact_tolerance
+    if args.method != "rounds":
+        for spec in out:
+            spec["scene"]["collision"]["method"] = args.method
     return out
 
 
@@ -355,6 +358,8 @@ def markdown(res: dict) -> str:
              f"thickness {THICKNESS * 1e3:g} mm, {res['duration']:g} s. rise: largest E(t) - E(0) over m g (1 m) "
              f"(goal <= {100 * RISE_GOAL:g} %).", ""]
     lines[0] += friction_text(res)
+    if res.get("method", "rounds") != "rounds":
+        lines[0] += f" Contact by `collision.method = \"{res['method']}\"`."
     if res.get("contact_tolerance"):
         lines[0] += f" Solves of steps with contacts at `solver.contact_tolerance = {res['contact_tolerance']:g}`."
     lines += ["| group | shape | grid | dt | material | rise | max strain | end | at rest from | on it at the end | "
@@ -516,6 +521,8 @@ def main(argv: list[str] | None = None) -> int:
                         "after two steps in a row that missed the law; 0: the default, never)")
     p.add_argument("--contact-tolerance", type=float, default=0.0, metavar="TOL",
                    help="solver.contact_tolerance of every row (0: the default, solver.tolerance)")
+    p.add_argument("--method", choices=ic.scene.COLLISION_METHODS, default="rounds",
+                   help="collision.method of every row (default: the library's, rounds)")
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--out", type=Path, default=Path(default_out('contact_energy')), help="output folder (default out/bench/contact_energy; --out benchmarks/results replaces the committed result)")
     p.add_argument("--merge", nargs="+", type=Path, metavar="JSON",
@@ -534,7 +541,7 @@ def main(argv: list[str] | None = None) -> int:
            "moving_duration": args.moving_duration, **dict(zip(("friction_speed", "friction_newton"),
                                                                friction_used(args.friction_speed, args.friction_newton),
                                                                strict=True)),
-           "friction_pause": args.friction_pause, "contact_tolerance": args.contact_tolerance,
+           "friction_pause": args.friction_pause, "contact_tolerance": args.contact_tolerance, "method": args.method,
            "wall_s": time.perf_counter() - t0, "rows": rows,
            "goals": {"rise_frac": RISE_GOAL, "stretch": STRETCH_GOAL}}
     args.out.mkdir(parents=True, exist_ok=True)

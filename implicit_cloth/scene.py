@@ -643,9 +643,11 @@ class Scene:
             "obstacles": validate_obstacles(data.get("obstacles", []), self.base_dir),
         }
         collision = _collision(data.get("collision", {})) if "collision" in data or out["obstacles"] else None
-        if collision is not None and not out["obstacles"] and not collision.get("self_collision"):
+        limits = collision is not None and collision.get("method") == "barrier" and "strain_limit" in out["simulation"]
+        if collision is not None and not out["obstacles"] and not collision.get("self_collision") and not limits:
             raise SceneError("collision: given, but the scene has no [[obstacles]] to collide with (and "
-                             "collision.self_collision is not true)")
+                             "collision.self_collision is not true, nor a barrier method for "
+                             "simulation.strain_limit)")
         out["collision"] = collision
         return out
 

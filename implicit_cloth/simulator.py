@@ -183,12 +183,10 @@ class Simulator:
         self.strain_bound = float(sim["strain_limit"]["max_strain"] if "strain_limit" in sim
                                   else sim["adaptive"]["max_strain"])
         self.health = Health()
-        #: Provot strain limiting (``[simulation.strain_limit]``), else None
-        self.strain_limiter: Any = None
-        if "strain_limit" in sim:
-            from .strain_limit import StrainLimiter  # only scenes that declare it import it
-
-            self.strain_limiter = StrainLimiter(self.model, sim["strain_limit"])
+        #: strain limiting (``[simulation.strain_limit]``), else None: Provot's projection after the step, or with
+        #: ``method = "barrier"`` a barrier in the step's solve (:attr:`strain_contact`, the same object)
+        self.strain_limiter: Any = _strain_limiting(self.model, sim, self.barrier, self.dt)
+        self.strain_contact: Any = self.strain_limiter if self.barrier else None
 
     # ------------------------------------------------------------------ state access
     @property
@@ -302,7 +300,7 @@ class Simulator:
         """
         col = self.collider
         pins = self._step_pins(state, h) if pins is None else pins
-        if self.barrier and (col is not None or self.cloth_contact is not None):
+        if self.barrier and (col is not None or self.cloth_contact is not None or self.strain_contact is not None):
             return self._barrier_step(state, h, pins)
         if col is not None and self.integrator.implicit:
             return col.step(self.integrator, state, h, pins, self.strain_limiter, newton)
@@ -335,6 +333,9 @@ class Simulator:
             friction = cloth.friction(terms[-1], state.x)
             if friction is not None:
                 terms.append(friction)
+        strain = self.strain_contact.term(state.x) if self.strain_contact is not None else None
+        if strain is not None:
+            terms.append(strain)
         t_detect = time.perf_counter() - t0
         share = NEWTON_ENERGY_SHARE * self._energy_growth
 
@@ -362,6 +363,8 @@ class Simulator:
         if np.all(np.isfinite(new.x)):
             info.contact_work = contact_work(new.x, new.v)
             info.contact_stored = stored(new.x)
+            if strain is not None:
+                self.strain_contact.count(strain, new.x)
         if col is not None and contacts is not None:
             depth = max((float(col.depths(k, new.x, new.t)[col.free].max(initial=0.0))
                          for k in range(len(col.obstacles))), default=0.0)
@@ -531,14 +534,26 @@ NEWTON_ENERGY_SHARE = 1.0
 HEALTH_CRITERIA: tuple[str, ...] = ("energy", "strain", "failsafe", "self_collision", "solver")
 
 
+def _strain_limiting(model: Model, sim: Mapping[str, Any], barrier: bool, dt: float) -> Any:
+    """The scene's strain limiting (``[simulation.strain_limit]``; None without): a barrier term of the step's
+    solve with ``collision.method = "barrier"`` (:class:`~implicit_cloth.contact.strain.StrainLimit`, whose
+    settings and counts report as the projection's), else Provot's projection. Imported only when declared."""
+    if "strain_limit" not in sim:
+        return None
+    if barrier:
+        from .contact.strain import StrainLimit
+
+        return StrainLimit(model, sim["strain_limit"], dt)
+    from .strain_limit import StrainLimiter
+
+    return StrainLimiter(model, sim["strain_limit"])
+
+
 def _check_barrier(data: Mapping[str, Any], implicit: bool) -> None:
     """What ``collision.method = "barrier"`` does not cover yet: a clear error naming the key."""
     if not implicit:
         raise SceneError(f"collision.method: 'barrier' minimises the implicit step's potential; it needs an "
                          f"implicit integrator (backward_euler, bdf2), got {data['simulation']['integrator']!r}")
-    if "strain_limit" in data["simulation"]:
-        raise SceneError("collision.method: 'barrier' does not apply simulation.strain_limit; use method = "
-                         "'rounds', got 'barrier'")
 
 
 class Health:

@@ -236,7 +236,6 @@ def _box_mesh():
 @pytest.mark.parametrize("change, message", [
     (lambda d: d["simulation"].update(integrator="symplectic_euler"),
      "collision.method: 'barrier' minimises the implicit step's potential; it needs an implicit integrator"),
-    (lambda d: d["simulation"].update(strain_limit={"max_strain": 0.1}), "does not apply simulation.strain_limit"),
     (lambda d: d["obstacles"].__setitem__(0, {"shape": "mesh", "path": _box_mesh(), "translation": [0.0, 0.0, 0.3],
                                               "friction": 0.0}),
      "free cloth vertices start inside the closed mesh"),

@@ -10,34 +10,39 @@ from __future__ import annotations
 import numpy as np
 
 
-def value(d: np.ndarray, dhat: float) -> np.ndarray:
+def _reach(d: np.ndarray, dhat: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``d`` as floats, where ``0 < d < dhat`` (``dhat`` a scalar or one per ``d``), and ``d``, ``dhat`` there."""
+    d = np.asarray(d, dtype=float)
+    dhat = np.broadcast_to(np.asarray(dhat, dtype=float), d.shape)
+    on = (d > 0) & (d < dhat)
+    return on, d[on], dhat[on]
+
+
+def value(d: np.ndarray, dhat: float | np.ndarray) -> np.ndarray:
     """``b(d)`` (m^2; the caller scales it by a stiffness), ``inf`` where ``d <= 0``."""
     d = np.asarray(d, dtype=float)
     out = np.zeros_like(d)
-    on = (d > 0) & (d < dhat)
-    dd = d[on]
+    on, dd, dhat = _reach(d, dhat)
     out[on] = -(dd - dhat) ** 2 * np.log(dd / dhat)
     out[d <= 0] = np.inf
     return out
 
 
-def first(d: np.ndarray, dhat: float) -> np.ndarray:
+def first(d: np.ndarray, dhat: float | np.ndarray) -> np.ndarray:
     """``b'(d)`` (m), <= 0; 0 at and beyond ``dhat`` (where ``d <= 0``: ``-inf``)."""
     d = np.asarray(d, dtype=float)
     out = np.zeros_like(d)
-    on = (d > 0) & (d < dhat)
-    dd = d[on]
+    on, dd, dhat = _reach(d, dhat)
     out[on] = -2.0 * (dd - dhat) * np.log(dd / dhat) - (dd - dhat) ** 2 / dd
     out[d <= 0] = -np.inf
     return out
 
 
-def second(d: np.ndarray, dhat: float) -> np.ndarray:
+def second(d: np.ndarray, dhat: float | np.ndarray) -> np.ndarray:
     """``b''(d)`` (dimensionless), > 0 on ``(0, dhat)``, 0 beyond."""
     d = np.asarray(d, dtype=float)
     out = np.zeros_like(d)
-    on = (d > 0) & (d < dhat)
-    dd = d[on]
+    on, dd, dhat = _reach(d, dhat)
     out[on] = -2.0 * np.log(dd / dhat) - 4.0 * (dd - dhat) / dd + (dd - dhat) ** 2 / dd ** 2
     out[d <= 0] = np.inf
     return out

@@ -629,13 +629,19 @@ class ImplicitIntegrator(Integrator):
             v[c.pinned] = c.pin_velocity
         # the first iterate: the start velocity, each vertex as far as the contacts allow from x_pred (v = 0)
         x0 = scheme.x_pred
-        v = bounds.start(x0, bounds.cut(x0, v, first=True))
-        floor = MINIMIZE_FLOOR * np.sqrt(float(np.sum(M)))
-        sysm = self.model.system
-        diag0 = np.empty((self.model.n, 3, 3)) if terms else None   # the diagonal blocks without the contacts'
+        v = bounds.cut(x0, v, first=True)
         # forces with neither a potential nor a dissipation potential (the aerodynamics): in Phi as their work
         # lagged at the iterate, -c_v F(x_k, v_k) . (w - v_k), so that Phi's slope there is the residual's
         unpotential = [e for e in self.model.effects if not e.conservative and not e.dissipative]
+        if bounds.limits:
+            v = self._first_within_limits(bounds, terms, c, M, scheme, every, x0, v, t1, unpotential)
+        v = bounds.start(x0, v)
+        for term in terms:          # a bound the first iterate's carried vertices break is moved out for the step
+            if hasattr(term, "admit"):
+                term.admit(x0 + cv * v)
+        floor = MINIMIZE_FLOOR * np.sqrt(float(np.sum(M)))
+        sysm = self.model.system
+        diag0 = np.empty((self.model.n, 3, 3)) if terms else None   # the diagonal blocks without the contacts'
         for _ in range(iterations):
             x = x0 + cv * v
             t0 = time.perf_counter()
@@ -659,11 +665,13 @@ class ImplicitIntegrator(Integrator):
 
             cut = bounds.cut(x, d)
             if cut is d:
-                a = _armijo(phi, v, d, 1.0, slope)
+                a = bounds.limit(x, d)
+                a = _armijo(phi, v, d, a, slope, settle=a < 1.0)
             else:
                 # the cut direction taken as it is where it lowers the potential at full or half length
                 slope_c = float(np.dot(R_free, cut.reshape(-1)))
-                a = _armijo(phi, v, cut, 1.0, slope_c, halvings=2) if slope_c < 0.0 else 0.0
+                a = bounds.limit(x, cut)
+                a = _armijo(phi, v, cut, a, slope_c, halvings=2, settle=a < 1.0) if slope_c < 0.0 else 0.0
                 if a > 0.0:
                     d, slope = cut, slope_c
                 else:
@@ -671,7 +679,8 @@ class ImplicitIntegrator(Integrator):
                     if found is None:
                         break
                     d, slope, a = found
-                    a = _armijo(phi, v, d, a, slope)
+                    limited = bounds.limit(x, d, a)
+                    a = _armijo(phi, v, d, limited, slope, settle=limited < a)
             if a <= 0.0:
                 break
             v = v + a * d
@@ -685,6 +694,35 @@ class ImplicitIntegrator(Integrator):
                 break
         x1 = x0 + scheme.beta * v
         return self._finish(x1, v, t1), info
+
+    @staticmethod
+    def _first_within_limits(bounds: "_PathBounds", terms: list[Any], c: Constraints, M: np.ndarray,
+                             scheme: Scheme, every: list[Any], x0: np.ndarray, v: np.ndarray, t1: float,
+                             unpotential: list[Any]) -> np.ndarray:
+        """:meth:`minimize`'s first iterate ``v`` under the terms that bound a move as a whole (the strain limit):
+        the pinned vertices on their paths (their bounds moved out where those alone break them,
+        ``admit``), the free vertices' velocities scaled by the largest share the bounds allow, then halved
+        while the step's potential still decreases (the start velocity carried into a bound would leave the
+        springs against it, where Newton only creeps back out)."""
+        cv = scheme.c_v
+        base = np.zeros_like(v)
+        base[c.pinned] = v[c.pinned]
+        free = v - base
+        xb = x0 + cv * base
+        for term in terms:
+            if hasattr(term, "admit"):
+                term.admit(xb)
+        a = bounds.limit(xb, free)
+        if a >= 1.0:
+            return v
+        phi = _step_potential(M, scheme.v_hat, every, x0, cv, t1, x0, v, unpotential)
+        p = phi(base + a * free)
+        for _ in range(LINE_SEARCH_HALVINGS):
+            q = phi(base + 0.5 * a * free)
+            if not q < p:
+                break
+            a, p = 0.5 * a, q
+        return base + a * free
 
     def _contact_direction(self, A: Any, R: np.ndarray, R_free: np.ndarray, x: np.ndarray, d: np.ndarray,
                            cut: np.ndarray, c: Constraints, bounds: "_PathBounds", info: StepInfo,
@@ -841,6 +879,8 @@ class _PathBounds:
 
     def __init__(self, terms: list[Any], c_v: float) -> None:
         self.terms = [f for f in terms if hasattr(f, "filter_move")]
+        #: the terms that bound a move as a whole (``step_limit(x, dx)``: the strain limit)
+        self.limits = [f for f in terms if hasattr(f, "step_limit")]
         self.c_v = c_v
         #: whether the last :meth:`cut` scaled the direction as a whole (its filters did not settle)
         self.scaled = False
@@ -865,6 +905,15 @@ class _PathBounds:
             cut = True
         self.scaled = True
         return self.uniform(x, d, first) * d
+
+    def limit(self, x: np.ndarray, d: np.ndarray, a: float = 1.0) -> float:
+        """``a``, or less where a term that bounds a move as a whole (``step_limit``) allows only a shorter share
+        of ``a d`` from ``x`` (a line search's first point; every shorter one is allowed too)."""
+        for f in self.limits:
+            if a <= 0.0:
+                break
+            a *= f.step_limit(x, self.c_v * a * d)
+        return a
 
     def normal_targets(self, x: np.ndarray, move: np.ndarray, idx: np.ndarray, full: np.ndarray,
                        stiffness: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -964,17 +1013,28 @@ def _step_potential(M: np.ndarray, v_hat: np.ndarray, every: list[Any], x0: np.n
 
 
 def _armijo(phi: Callable[[np.ndarray], float], v: np.ndarray, d: np.ndarray, a: float, slope: float,
-            halvings: int = LINE_SEARCH_HALVINGS) -> float:
+            halvings: int = LINE_SEARCH_HALVINGS, settle: bool = False) -> float:
     """Backtracking from ``a`` until ``phi(v + a d) <= phi(v) + 1e-4 a slope``; 0 when it does not within
-    ``halvings`` tries."""
+    ``halvings`` tries. ``settle`` (``a`` is a bound's, short of the full step): once accepted, halved on while
+    ``phi`` still decreases, so that the step ends near the least ``phi`` along ``d`` rather than where the bound
+    stopped it (next to a barrier's wall, where Newton then only creeps back out)."""
     if a <= 0.0:
         return 0.0
     p0 = phi(v)
     for _ in range(halvings):
-        if phi(v + a * d) <= p0 + 1e-4 * a * slope:
-            return a
+        p = phi(v + a * d)
+        if p <= p0 + 1e-4 * a * slope:
+            break
         a *= 0.5
-    return 0.0
+    else:
+        return 0.0
+    if settle:
+        for _ in range(halvings):
+            q = phi(v + 0.5 * a * d)
+            if not q < p:
+                break
+            a, p = 0.5 * a, q
+    return a
 
 
 def _model_slope(c: Constraints, cv: float, v: np.ndarray, d: np.ndarray, lin: float, dAd: float) -> Any:
