@@ -125,8 +125,9 @@ def test_keyframed_sphere_never_inside_energy_within_its_work(dt):
 
 def test_friction_carries_a_sheet_with_a_sliding_sphere():
     """A sheet resting on a sphere that then slides sideways at 0.5 m/s (keys): friction acts on the velocity
-    relative to the sphere's surface, so the sheet is carried along (its mean velocity near the sphere's), never
-    inside it; without friction the sheet is left behind, sliding off."""
+    relative to the sphere's surface, so the sheet is carried along (within 5 % of the sphere's 0.2 m), never
+    inside it; without friction it slides on the sphere and is carried less (the sphere's surface still pushes
+    the draped sheet sideways: 0.168 m here, 0.182 m with the contact rounds)."""
     slide = {"keyframes": [{"time": 0.0, "center": [0.0, 0.0, -0.16]}, {"time": 0.3, "center": [0.0, 0.0, -0.16]},
                            {"time": 0.7, "center": [0.2, 0.0, -0.16]}]}
     out = {}
@@ -135,7 +136,7 @@ def test_friction_carries_a_sheet_with_a_sliding_sphere():
         for s in states[1:]:
             assert np.linalg.norm(s.x - _center(sim, s.t), axis=1).min() > R + TH / 2
         out[mu] = float(np.mean(states[-1].x[:, 0]))
-    assert out[0.8] > 0.1 and out[0.8] > out[0.0] + 0.05, out
+    assert out[0.8] > 0.19 and out[0.8] > out[0.0] + 0.01, out
 
 
 def test_numpy_and_numba_agree_on_a_moving_sphere(monkeypatch):

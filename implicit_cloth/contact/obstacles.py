@@ -80,6 +80,9 @@ MESH_ADVANCE_ITERATIONS = 4
 #: The finer splits of the step the carry's swept test (:meth:`ObstacleBarrier.start`) tries, one after the other,
 #: on the vertices it flags (a vertex in contact with a turning sphere is flagged by the coarse chord's dip).
 SWEPT_REFINE = (8, 64)
+#: A round shape's edges are felt where a straight edge between two vertices at the offset dips more than this
+#: share of the offset toward it (:func:`needs_edges`).
+EDGE_DIP = 1.0
 #: Passes of the edges' check over the cut moves (:meth:`ObstacleBarrier.fractions`) before the move is scaled.
 EDGE_PASSES = 3
 #: Point-triangle pairs a mesh's distance query evaluates all at once before it searches the triangles' boxes.
@@ -376,8 +379,9 @@ class ObstacleBarrier(ConservativeTerm):
             # farther (one arriving from afar reaches the barrier's zone in one move)
             target = self.xi + _path_floor(g0, self.dhat, first)
             # phi is 1-Lipschitz: a path shorter than its start's phi less the target is safe unchecked (and a
-            # vertex that does not move crosses nothing)
-            near = np.flatnonzero((step > 0.0) & (g0 + self.xi - step < target))
+            # vertex that does not move crosses nothing); at the step's first iterate a vertex already within the
+            # offset of a moving obstacle's end pose is the carry's (start), not cut here
+            near = np.flatnonzero((step > 0.0) & (g0 + self.xi - step < target) & ~(first & (g0 <= 0.0)))
             if not len(near):
                 continue
             p1 = self._local(ob, p0w[near] + dw[near])
@@ -466,6 +470,9 @@ class ObstacleBarrier(ConservativeTerm):
             if len(unknown):
                 low_all[unknown] = ob.shape.segment_minimum(a0[unknown], a1[unknown])[1]
             g0 = low_all[cand] - self.xi
+            if first:               # an edge already within a moving obstacle's end pose is the carry's (start)
+                out = g0 > 0.0
+                cand, speed, g0 = cand[out], speed[out], g0[out]
             floor = _path_floor(g0, self.dhat, first)           # as for the vertices (fractions)
             target = self.xi + floor
             lin = g0 - speed > floor                             # 1-Lipschitz: the whole move is safe
@@ -636,8 +643,10 @@ def _segment_low(shape: Any, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
 
 def needs_edges(shape: Any, longest: float, xi: float) -> bool:
     """Whether the cloth's edges must be kept off a shape, not only its vertices: a shape with sharp features
-    (box, cone), or one so thin that a straight edge between two vertices at the offset could dip more than half
-    the offset into it (``L^2 / (8 R) > xi / 2``, ``L`` the longest edge at rest, ``R`` the shape's radius).
+    (box, cone), or one so thin that a straight edge between two vertices at the offset could reach it
+    (``L^2 / (8 R) >`` :data:`EDGE_DIP` ``xi``, ``L`` the longest edge at rest, ``R`` the shape's radius). With
+    half the offset (as before), a 32² sheet that a sphere of 0.15 m passes through was dragged with it (strain
+    1.5 in 0.47 s): the chords' gaps of a few micrometres cut their vertices' moves to nothing, every iteration.
     Edge terms on a large curved shape add nothing the vertices do not keep and, at large steps, cost energy:
     their gaps close to a few hundred nanometres as the cloth slides (the chord is nearer than its ends), and
     backward Euler's end-of-step force on a curved barrier then gains energy (a 32² drape on a 0.3 m sphere
@@ -645,7 +654,7 @@ def needs_edges(shape: Any, longest: float, xi: float) -> bool:
     if shape.name in ("plane", "mesh"):       # a mesh: its vertices only (a limit: see the module notes)
         return False
     radius = getattr(shape, "radius", 0.0) if shape.name in ("sphere", "capsule") else 0.0
-    return radius <= 0.0 or longest * longest / (8.0 * radius) > 0.5 * xi
+    return radius <= 0.0 or longest * longest / (8.0 * radius) > EDGE_DIP * xi
 
 
 def _edge_advance(shape: Any, a0: np.ndarray, a1: np.ndarray, d0: np.ndarray, d1: np.ndarray, target: np.ndarray,
