@@ -289,7 +289,10 @@ def _section_lines(r: RunReport) -> list[str]:
         lines.append(f"adaptive     {a.substeps} substeps, {a.retries} retries (halved), {a.newton_retries} redone "
                      f"with Newton iterations, {a.forced} forced, smallest step {a.min_step:g} s")
     sl = r.strain_limit
-    if sl:
+    if sl and sl.method == "barrier":
+        lines.append(f"strain limit {sl.max_strain:g} (barrier): {sl.springs_limited} springs within its reach at "
+                     f"the end of {sl.steps_limited} steps, max strain {sl.max_strain_after:.4g}")
+    elif sl:
         lines.append(f"strain limit {sl.max_strain:g}: {sl.springs_limited} over-stretched springs in "
                      f"{sl.steps_limited} steps, max strain after limiting {sl.max_strain_after:.4g}")
     c = r.collision

@@ -172,6 +172,9 @@ class StrainLimitReport(Record):
     tethers: int = 0
     #: the in-plane springs' compression bound (1: none, as in a report from before the bound)
     max_compression: float = 1.0
+    #: "projection" (Provot's passes after the step) or "barrier" (a term of the step's solve, ``collision.method =
+    #: "barrier"``: ``springs_limited`` counts the springs within the barrier's reach at a step's end)
+    method: str = "projection"
 
 
 @dataclass

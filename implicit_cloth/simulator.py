@@ -785,7 +785,9 @@ class _Recorder:
             report["strain_limit"] = {"max_strain": sim.strain_limiter.max_strain,
                                       "max_compression": sim.strain_limiter.max_compression,
                                       "iterations": sim.strain_limiter.iterations,
-                                      "tethers": sim.strain_limiter.n_tethers, **stats}
+                                      "tethers": sim.strain_limiter.n_tethers,
+                                      "method": "barrier" if sim.strain_contact is not None else "projection",
+                                      **stats}
         if self.col is not None:
             report["timing"]["t_collision"] = self.col.time
             report["collision"] = self.col.report(sim.collider)

@@ -181,3 +181,40 @@ def test_a_barrier_strain_limit_needs_no_obstacle_but_a_rounds_collision_table_s
     del scene["simulation"]["strain_limit"]
     with pytest.raises(SceneError, match="no \\[\\[obstacles\\]\\] to collide with"):
         ic.Simulator(scene)
+
+
+def test_the_cli_says_what_the_barrier_limit_did(tmp_path, capsys):
+    """``implicit-cloth run``: the report's strain_limit says ``method = "barrier"`` and the summary line counts
+    springs within the barrier's reach, not over-stretched ones (none is)."""
+    import json
+
+    from implicit_cloth.cli import main
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text("""
+[simulation]
+integrator = "backward_euler"
+dt = 0.016666666666666666
+duration = 0.5
+strain_limit = { max_strain = 0.1 }
+
+[cloth]
+size = [1.0, 1.0]
+resolution = [8, 8]
+plane = "xz"
+mass = 0.1
+pins = ["top_left", "top_right"]
+springs = { structural = { stiffness = 5.0 }, shear = { stiffness = 1.7 }, bend = { stiffness = 0.1 } }
+
+[effects]
+gravity = [0.0, 0.0, -9.81]
+
+[collision]
+method = "barrier"
+""")
+    assert main(["run", str(scene), "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    sl = report["strain_limit"]
+    assert sl["method"] == "barrier" and sl["steps_limited"] > 0 and sl["max_strain_after"] <= 0.1 + 1e-9
+    out = capsys.readouterr().out
+    assert "strain limit 0.1 (barrier):" in out and "over-stretched" not in out
