@@ -218,3 +218,23 @@ method = "barrier"
     assert sl["method"] == "barrier" and sl["steps_limited"] > 0 and sl["max_strain_after"] <= 0.1 + 1e-9
     out = capsys.readouterr().out
     assert "strain limit 0.1 (barrier):" in out and "over-stretched" not in out
+
+
+def test_a_bound_let_out_comes_back_without_a_jump_in_the_barrier_s_energy():
+    """Pins pulled apart let bounds out; the next step's barrier starts at the energy the last step's ended with
+    (its bounds drawn back only as far as that holds: no energy appears between steps)."""
+    scene = _hanging(n=6, k=50.0, duration=1.0)
+    scene["cloth"]["pins"] = [{"vertices": ["top_left"], "velocity": [-0.4, 0.0, 0.0]},
+                              {"vertices": ["top_right"], "velocity": [0.4, 0.0, 0.0]}]
+    sim = ic.Simulator(scene)
+    stage = sim.strain_contact
+    let_out = 0
+    for _ in range(20):
+        sim.step()
+        x1 = sim.state.x
+        _, u_end, lo_end = stage._ends[-1]
+        ended = strain_mod.StrainBarrier(stage, x1, u_end, lo_end)
+        let_out += int(np.count_nonzero(u_end > stage.upper))
+        nxt = stage.term(x1)
+        assert nxt.energy(x1) == pytest.approx(ended.energy(x1), rel=1e-12, abs=1e-15)
+    assert let_out > 0

@@ -14,9 +14,11 @@
   than :data:`SAFE` of its room (exact: a spring's squared length is a quadratic in the share), so the line
   search starts where its energy is finite.
 * A spring the step starts beyond its bound (a state given stretched) has its bound for the step moved out to
-  its length plus half the reach; so has a spring the step's first iterate puts beyond it (a moving obstacle
-  carrying vertices it would pass through: :meth:`StrainBarrier.admit`). The step's strain check then reports
-  it (the ``strain`` warning); the solve pulls it back as the springs do.
+  its length plus half the reach; so has a spring the step's first iterate puts beyond it (pins moving apart, a
+  moving obstacle carrying vertices it would pass through: :meth:`StrainBarrier.admit`). The step's strain
+  check then reports it (the ``strain`` warning). The next step starts from the bound the last one ended with,
+  drawn back toward the spring's own as far as the barrier's energy allows (:meth:`StrainLimit.term`: no energy
+  appears between steps), so a spring let out comes back under its bound as it relaxes.
 
 Unlike the projection (:mod:`implicit_cloth.strain_limit`), this is the constrained step itself (one
 minimisation with the springs, contact and friction), not a correction after it: no tethers or passes are needed
@@ -37,6 +39,8 @@ from . import barrier
 REACH = 0.25
 #: A line search's first point closes at most this share of a spring's room to its bound.
 SAFE = 0.9
+#: Recent steps' end states whose bounds the stage keeps for a step starting there (:meth:`StrainLimit.term`).
+ENDS_KEPT = 8
 #: A spring the step starts (or its first iterate puts) beyond its bound is bounded at its length plus this share
 #: of the reach, for the step.
 ADMIT = 0.5
@@ -78,6 +82,9 @@ class StrainLimit:
         floor = float(np.mean(model.masses)) / float(dt) ** 2
         self.kappa = np.maximum(s.k[keep] if s is not None else np.zeros(0), floor)
         self._blocks: tuple[Any, tuple[np.ndarray, ...]] | None = None
+        #: the bounds recent steps ended with, with their end positions (a step starts from the state a step
+        #: accepted; its attempts adaptive stepping redoes end elsewhere)
+        self._ends: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.reset_stats()
 
     def blocks(self, system: Any) -> tuple[np.ndarray, ...]:
@@ -92,11 +99,23 @@ class StrainLimit:
         self.stats = {"steps_limited": 0, "springs_limited": 0, "max_iterations": 0, "max_strain_after": 0.0}
 
     def term(self, x0: np.ndarray) -> "StrainBarrier":
-        """The step's barrier, its bounds moved out for the springs ``x0`` (the step's start) has beyond them."""
-        return StrainBarrier(self, x0)
+        """The step's barrier from ``x0`` (the step's start): a bound the last step moved out is drawn back toward
+        its own value as far as the barrier stays at the energy the last step ended with (to ``l + dhat``, where the
+        barrier holds nothing, or to the bound itself; so the barrier's energy is continuous from one step to the
+        next, and a spring let out comes back under its bound as it relaxes), and moved out for the springs ``x0``
+        has beyond it."""
+        last = next(((u, lo) for x1, u, lo in reversed(self._ends) if np.array_equal(x1, x0)), None)
+        if last is None:            # a state no step ended at (the run's start, positions set): the bounds as given
+            return StrainBarrier(self, x0)
+        lengths = self.model.backend.spring_lengths(x0, self.i, self.j)
+        upper = np.maximum(self.upper, np.minimum(last[0], lengths + self.reach_up))
+        lower = np.minimum(self.lower, np.maximum(last[1], lengths - self.reach_down))
+        return StrainBarrier(self, x0, upper, lower)
 
     def count(self, term: "StrainBarrier", x1: np.ndarray) -> None:
-        """Book a step that ended at ``x1`` in :attr:`stats` (a step with a spring within the barrier's reach)."""
+        """Book a step that ended at ``x1`` in :attr:`stats` (a step with a spring within the barrier's reach), and
+        keep its bounds for the next step's."""
+        self._ends = self._ends[-(ENDS_KEPT - 1):] + [(x1.copy(), term.upper, term.lower)]
         active = term.active(x1)
         if active:
             self.stats["steps_limited"] += 1
@@ -108,10 +127,11 @@ class StrainBarrier(ConservativeTerm):
 
     name = "strain_limit"
 
-    def __init__(self, stage: StrainLimit, x0: np.ndarray) -> None:
+    def __init__(self, stage: StrainLimit, x0: np.ndarray, upper: np.ndarray | None = None,
+                 lower: np.ndarray | None = None) -> None:
         self.stage = stage
-        self.upper = stage.upper.copy()
-        self.lower = stage.lower.copy()
+        self.upper = (stage.upper if upper is None else upper).copy()
+        self.lower = (stage.lower if lower is None else lower).copy()
         self.admit(x0)
 
     def pairs(self) -> np.ndarray:
