@@ -93,25 +93,14 @@ class StrainLimiter:
         self.model = model
         self.max_strain = float(settings["max_strain"])
         self.iterations = int(settings["iterations"])
-        s = model.springs
         w = model.inv_masses.copy()
         w[model.pinned] = 0.0
-        if s is None:
-            keep = np.zeros(0, dtype=np.int64)
-            i = j = keep
-            L0 = np.zeros(0)
-        else:
-            keep = np.flatnonzero((s.L0 > 0) & ((w[s.i] + w[s.j]) > 0))   # springs that can be corrected
-            i, j, L0 = s.i[keep], s.j[keep], s.L0[keep]
+        i, j, L0, _, planar = limited_springs(model)
         self.i, self.j, self.L0 = i, j, L0
         self.limit = (1.0 + self.max_strain) * L0
         #: the in-plane springs' (structural and shear) compression bound; 1: none
         self.max_compression = float(settings.get("max_compression", min(self.max_strain, 1.0)))
-        planar = np.zeros(0 if s is None else len(s.L0), dtype=bool)
-        for kind in ("structural", "shear"):
-            if s is not None and kind in s.kinds:
-                planar[s.kinds[kind]] = True
-        lower = np.where(planar[keep], (1.0 - self.max_compression) * L0, 0.0)   # 0: no bound
+        lower = np.where(planar, (1.0 - self.max_compression) * L0, 0.0)   # 0: no bound
         self.lower = lower
         self.wi, self.wj = w[i], w[j]
         self.share_i = self.wi / np.maximum(self.wi + self.wj, np.finfo(float).tiny)
@@ -167,6 +156,25 @@ class StrainLimiter:
         after = float(((lengths(x, self.i, self.j) - self.L0) / self.L0).max())
         self.stats["max_strain_after"] = max(self.stats["max_strain_after"], after)
         return passes
+
+
+def limited_springs(model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The springs strain limiting bounds (a rest length and an end that can move): their ends ``i``,
+    ``j``, rest lengths, stiffnesses and whether each is in-plane (structural or shear: the ones with a
+    compression bound)."""
+    s = model.springs
+    if s is None:
+        none = np.zeros(0, dtype=np.int64)
+        return none, none, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool)
+    w = model.inv_masses.copy()
+    w[model.pinned] = 0.0
+    keep = np.flatnonzero((s.L0 > 0) & ((w[s.i] + w[s.j]) > 0))   # springs that can be corrected
+    planar = np.zeros(len(s.L0), dtype=bool)
+    for kind in ("structural", "shear"):
+        if kind in s.kinds:
+            planar[s.kinds[kind]] = True
+    c = np.ascontiguousarray
+    return c(s.i[keep], dtype=np.int64), c(s.j[keep], dtype=np.int64), s.L0[keep], s.k[keep], planar[keep]
 
 
 def _tethers(i: np.ndarray, j: np.ndarray, L0: np.ndarray, w: np.ndarray, pinned: np.ndarray, n: int

@@ -644,9 +644,10 @@ def _segment_low(shape: Any, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
 def needs_edges(shape: Any, longest: float, xi: float) -> bool:
     """Whether the cloth's edges must be kept off a shape, not only its vertices: a shape with sharp features
     (box, cone), or one so thin that a straight edge between two vertices at the offset could reach it
-    (``L^2 / (8 R) >`` :data:`EDGE_DIP` ``xi``, ``L`` the longest edge at rest, ``R`` the shape's radius). With
-    half the offset (as before), a 32² sheet that a sphere of 0.15 m passes through was dragged with it (strain
-    1.5 in 0.47 s): the chords' gaps of a few micrometres cut their vertices' moves to nothing, every iteration.
+    (``L^2 / (8 R) >`` :data:`EDGE_DIP` ``xi``, ``L`` the longest edge at rest, ``R`` the shape's radius). Felt
+    where a chord dips only half the offset, a sphere of 0.15 m passing through a 32² sheet dragged it along
+    (strain 1.5 in 0.47 s): the chords' gaps of a few micrometres cut their vertices' moves to nothing, every
+    iteration.
     Edge terms on a large curved shape add nothing the vertices do not keep and, at large steps, cost energy:
     their gaps close to a few hundred nanometres as the cloth slides (the chord is nearer than its ends), and
     backward Euler's end-of-step force on a curved barrier then gains energy (a 32² drape on a 0.3 m sphere

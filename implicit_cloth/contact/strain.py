@@ -58,29 +58,18 @@ class StrainLimit:
         self.iterations = int(settings.get("iterations", 0))
         #: the projection's tethers: none here (the barrier's solve is global)
         self.n_tethers = 0
-        s = model.springs
-        w = model.inv_masses.copy()
-        w[model.pinned] = 0.0
-        if s is None:
-            keep = np.zeros(0, dtype=np.int64)
-        else:
-            keep = np.flatnonzero((s.L0 > 0) & ((w[s.i] + w[s.j]) > 0))     # the springs the projection limits
-        self.i = np.ascontiguousarray(s.i[keep] if s is not None else keep, dtype=np.int64)
-        self.j = np.ascontiguousarray(s.j[keep] if s is not None else keep, dtype=np.int64)
-        L0 = s.L0[keep] if s is not None else np.zeros(0)
+        from ..strain_limit import limited_springs
+
+        self.i, self.j, L0, k, planar = limited_springs(model)
         self.L0 = L0
-        planar = np.zeros(0 if s is None else len(s.L0), dtype=bool)
-        for kind in ("structural", "shear"):
-            if s is not None and kind in s.kinds:
-                planar[s.kinds[kind]] = True
         self.upper = (1.0 + self.max_strain) * L0
         self.reach_up = REACH * self.max_strain * L0
         #: the in-plane springs' least length (0: no bound) and the shortening barrier's reach
-        shortens = planar[keep] & (self.max_compression < 1.0)
+        shortens = planar & (self.max_compression < 1.0)
         self.lower = np.where(shortens, (1.0 - self.max_compression) * L0, 0.0)
         self.reach_down = np.where(shortens, REACH * self.max_compression * L0, 0.0)
         floor = float(np.mean(model.masses)) / float(dt) ** 2
-        self.kappa = np.maximum(s.k[keep] if s is not None else np.zeros(0), floor)
+        self.kappa = np.maximum(k, floor)
         self._blocks: tuple[Any, tuple[np.ndarray, ...]] | None = None
         #: the bounds recent steps ended with, with their end positions (a step starts from the state a step
         #: accepted; its attempts adaptive stepping redoes end elsewhere)
@@ -157,25 +146,24 @@ class StrainBarrier(ConservativeTerm):
     def _gaps(self, lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.upper - lengths, lengths - self.lower
 
+    def _near(self, up: np.ndarray, down: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Which springs' rooms ``up`` (to stretch) and ``down`` (to shorten, where bounded) are within reach."""
+        st = self.stage
+        return up < st.reach_up, (st.reach_down > 0) & (down < st.reach_down)
+
     def active(self, x: np.ndarray) -> int:
         """Springs within the barrier's reach at ``x``."""
-        up, down = self._gaps(self.lengths(x))
-        st = self.stage
-        return int(np.count_nonzero((up < st.reach_up) | ((st.reach_down > 0) & (down < st.reach_down))))
+        near_up, near_down = self._near(*self._gaps(self.lengths(x)))
+        return int(np.count_nonzero(near_up | near_down))
 
     def energy(self, x: np.ndarray) -> float:
         st = self.stage
         up, down = self._gaps(self.lengths(x))
         if np.any(up <= 0.0) or np.any((st.reach_down > 0) & (down <= 0.0)):
             return np.inf
-        e = 0.0
-        near = np.flatnonzero(up < st.reach_up)
-        if len(near):
-            e += float(np.sum(st.kappa[near] * barrier.value(up[near], st.reach_up[near])))
-        near = np.flatnonzero((st.reach_down > 0) & (down < st.reach_down))
-        if len(near):
-            e += float(np.sum(st.kappa[near] * barrier.value(down[near], st.reach_down[near])))
-        return e
+        near_up, near_down = self._near(up, down)
+        return (float(np.sum(st.kappa[near_up] * barrier.value(up[near_up], st.reach_up[near_up])))
+                + float(np.sum(st.kappa[near_down] * barrier.value(down[near_down], st.reach_down[near_down]))))
 
     def _derivatives(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The springs within reach at ``x``: their indices, lengths, directions ``u = (x_j - x_i) / l`` and the
@@ -183,8 +171,7 @@ class StrainBarrier(ConservativeTerm):
         st = self.stage
         lengths = self.lengths(x)
         up, down = self._gaps(lengths)
-        near_up = up < st.reach_up
-        near_down = (st.reach_down > 0) & (down < st.reach_down)
+        near_up, near_down = self._near(up, down)
         idx = np.flatnonzero(near_up | near_down)
         if not len(idx):
             z = np.zeros(0)
@@ -231,11 +218,11 @@ class StrainBarrier(ConservativeTerm):
         X[:, 1, 1] += alpha
         X[:, 2, 2] += alpha
         ii, jj, ij, ji = (b[idx] for b in st.blocks(system))
-        blocks = system.blocks
-        np.add.at(blocks, ii, c_x * X)
-        np.add.at(blocks, jj, c_x * X)
-        np.add.at(blocks, ij, -c_x * X)
-        np.add.at(blocks, ji, -c_x * X)
+        blocks, cX = system.blocks, c_x * X
+        np.add.at(blocks, ii, cX)
+        np.add.at(blocks, jj, cX)
+        np.add.at(blocks, ij, -cX)
+        np.add.at(blocks, ji, -cX)
         if kw is not None and w is not None:
             dw = w[st.j[idx]] - w[st.i[idx]]
             kdw = np.einsum("kab,kb->ka", X, dw)      # -(dF_j/dx) w: the Hessian's product

@@ -634,11 +634,9 @@ class ImplicitIntegrator(Integrator):
         # lagged at the iterate, -c_v F(x_k, v_k) . (w - v_k), so that Phi's slope there is the residual's
         unpotential = [e for e in self.model.effects if not e.conservative and not e.dissipative]
         if bounds.limits:
-            v = self._first_within_limits(bounds, terms, c, M, scheme, every, x0, v, t1, unpotential)
+            v = self._first_within_limits(bounds, c, M, scheme, every, x0, v, t1, unpotential)
         v = bounds.start(x0, v)
-        for term in terms:          # a bound the first iterate's carried vertices break is moved out for the step
-            if hasattr(term, "admit"):
-                term.admit(x0 + cv * v)
+        bounds.admit(x0 + cv * v)   # a bound the first iterate's carried vertices break is moved out for the step
         floor = MINIMIZE_FLOOR * np.sqrt(float(np.sum(M)))
         sysm = self.model.system
         diag0 = np.empty((self.model.n, 3, 3)) if terms else None   # the diagonal blocks without the contacts'
@@ -696,8 +694,8 @@ class ImplicitIntegrator(Integrator):
         return self._finish(x1, v, t1), info
 
     @staticmethod
-    def _first_within_limits(bounds: "_PathBounds", terms: list[Any], c: Constraints, M: np.ndarray,
-                             scheme: Scheme, every: list[Any], x0: np.ndarray, v: np.ndarray, t1: float,
+    def _first_within_limits(bounds: "_PathBounds", c: Constraints, M: np.ndarray, scheme: Scheme,
+                             every: list[Any], x0: np.ndarray, v: np.ndarray, t1: float,
                              unpotential: list[Any]) -> np.ndarray:
         """:meth:`minimize`'s first iterate ``v`` under the terms that bound a move as a whole (the strain limit):
         the pinned vertices on their paths (their bounds moved out where those alone break them,
@@ -709,20 +707,12 @@ class ImplicitIntegrator(Integrator):
         base[c.pinned] = v[c.pinned]
         free = v - base
         xb = x0 + cv * base
-        for term in terms:
-            if hasattr(term, "admit"):
-                term.admit(xb)
+        bounds.admit(xb)
         a = bounds.limit(xb, free)
         if a >= 1.0:
             return v
         phi = _step_potential(M, scheme.v_hat, every, x0, cv, t1, x0, v, unpotential)
-        p = phi(base + a * free)
-        for _ in range(LINE_SEARCH_HALVINGS):
-            q = phi(base + 0.5 * a * free)
-            if not q < p:
-                break
-            a, p = 0.5 * a, q
-        return base + a * free
+        return base + _halved_while_lower(phi, base, free, a, phi(base + a * free)) * free
 
     def _contact_direction(self, A: Any, R: np.ndarray, R_free: np.ndarray, x: np.ndarray, d: np.ndarray,
                            cut: np.ndarray, c: Constraints, bounds: "_PathBounds", info: StepInfo,
@@ -881,6 +871,8 @@ class _PathBounds:
         self.terms = [f for f in terms if hasattr(f, "filter_move")]
         #: the terms that bound a move as a whole (``step_limit(x, dx)``: the strain limit)
         self.limits = [f for f in terms if hasattr(f, "step_limit")]
+        #: the terms whose bounds move out for a step's first iterate (``admit(x)``)
+        self.admitting = [f for f in terms if hasattr(f, "admit")]
         self.c_v = c_v
         #: whether the last :meth:`cut` scaled the direction as a whole (its filters did not settle)
         self.scaled = False
@@ -914,6 +906,12 @@ class _PathBounds:
                 break
             a *= f.step_limit(x, self.c_v * a * d)
         return a
+
+    def admit(self, x: np.ndarray) -> None:
+        """Let the terms that can move their bounds out for the step (the strain limit) admit positions ``x``
+        (the step's first iterate, or its pins alone)."""
+        for f in self.admitting:
+            f.admit(x)
 
     def normal_targets(self, x: np.ndarray, move: np.ndarray, idx: np.ndarray, full: np.ndarray,
                        stiffness: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1028,12 +1026,17 @@ def _armijo(phi: Callable[[np.ndarray], float], v: np.ndarray, d: np.ndarray, a:
         a *= 0.5
     else:
         return 0.0
-    if settle:
-        for _ in range(halvings):
-            q = phi(v + 0.5 * a * d)
-            if not q < p:
-                break
-            a, p = 0.5 * a, q
+    return _halved_while_lower(phi, v, d, a, p, halvings) if settle else a
+
+
+def _halved_while_lower(phi: Callable[[np.ndarray], float], v: np.ndarray, d: np.ndarray, a: float, p: float,
+                        halvings: int = LINE_SEARCH_HALVINGS) -> float:
+    """``a`` (``phi(v + a d) = p``) halved while ``phi`` still decreases, at most ``halvings`` times."""
+    for _ in range(halvings):
+        q = phi(v + 0.5 * a * d)
+        if not q < p:
+            break
+        a, p = 0.5 * a, q
     return a
 
 
